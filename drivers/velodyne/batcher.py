@@ -1,0 +1,242 @@
+"""Packets to full-rotation scans: a push object, one data packet in, a scan out when done.
+
+Per packet it reads only the header bytes it needs (ToH, last-block azimuth, factory bytes)
+and keeps the raw payload; the whole scan is decoded in one vectorised call when it
+closes. It cuts at packet granularity like velodyne_decoder: a scan ends with, and
+includes, the first packet whose last-block azimuth has crossed the cut angle.
+
+Loss, duplicates and reordering are found from the device clock (ToH steps of 1327 us in
+single-return mode, 664 us in dual), independent of the transport. Loss counting assumes
+the sensor sends the whole 360 deg; a configured FOV shows up as lost packets.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from drivers.records import Scan
+from drivers.velodyne import models as m
+from drivers.velodyne.packet import decode_packets, resolve_hour, valid_packets, view_packets
+
+_HOUR_US = 3_600_000_000
+_FLAG_LO = b"\xff" * m.BLOCKS_PER_PACKET
+_FLAG_HI = b"\xee" * m.BLOCKS_PER_PACKET
+_LAST_BLOCK_AZIMUTH = (m.BLOCKS_PER_PACKET - 1) * 100 + 2
+_TAIL = struct.Struct("<IBB")  # ToH, return mode, product at byte 1200
+
+
+@dataclass
+class BatcherStats:
+    """What the batcher saw. Every data packet lands in exactly one of: decoded into a
+    scan, `malformed`, `unsupported_model`, `duplicates`, `late`."""
+
+    data_packets: int = 0
+    malformed: int = 0
+    unsupported_model: int = 0
+    lost: int = 0  # missing from the device clock sequence
+    duplicates: int = 0
+    out_of_order: int = 0  # arrived late but put back in place within its scan
+    late: int = 0  # arrived after its scan was closed: dropped
+    time_jumps: int = 0  # device clock jumped (sensor restart, reconfigured): scan closed
+    scans: int = 0
+    complete_scans: int = 0
+    points: int = 0
+    duplicate_returns: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+@dataclass
+class _ScanInProgress:
+    started_at_cut: bool
+    return_mode: int
+    product: int
+    payloads: list[bytes] = field(default_factory=list)
+    t_host: list[int] = field(default_factory=list)
+    toh: list[int] = field(default_factory=list)  # unwrapped device microseconds
+    lost: int = 0
+    coverage: int | None = None  # centidegrees swept past the cut angle
+
+
+class ScanBatcher:
+    """Turns a stream of VLP-16 data payloads into `Scan`s.
+
+    `model`: "auto" (read byte 1205; 0x21 is taken for a VLP-16 only when the packet
+    timing says 16 lasers) or a name from `models.MODELS_BY_NAME` to override the byte.
+    `cut_angle_deg`: sensor azimuth where one scan ends and the next begins.
+    `max_gap_s`: a device-clock step longer than this (or backwards further than this)
+    is a time jump, not packet loss; a scan is also closed after this much device time.
+    """
+
+    def __init__(self, model: str = "auto", cut_angle_deg: float = 0.0, max_gap_s: float = 1.0):
+        if not 0.0 <= cut_angle_deg < 360.0:
+            raise ValueError(f"cut angle must be in [0, 360) degrees, got {cut_angle_deg}")
+        self._forced_model = m.model_by_name(model)
+        self._cut = round(cut_angle_deg * 100) % 36000
+        self._max_gap_us = int(max_gap_s * 1e6)
+        self._scan: _ScanInProgress | None = None
+        self._next_starts_at_cut = False
+        self._byte21_is_vlp16: bool | None = None  # settled by packet timing
+        self._last_toh: int | None = None  # unwrapped device microseconds
+        self.stats = BatcherStats()
+
+    def push(self, payload: bytes, t_host: int) -> Scan | None:
+        """Add one 1206-byte data payload received at `t_host` (ns since the epoch).
+        Returns the scan this packet completed, if any. Never raises on bad bytes."""
+        self.stats.data_packets += 1
+        if (
+            len(payload) != m.DATA_PACKET_SIZE
+            or payload[0:1200:100] != _FLAG_LO
+            or payload[1:1200:100] != _FLAG_HI
+        ):
+            self.stats.malformed += 1
+            return None
+        toh_raw, mode, product = _TAIL.unpack_from(payload, 1200)
+        azimuth = payload[_LAST_BLOCK_AZIMUTH] | payload[_LAST_BLOCK_AZIMUTH + 1] << 8
+        if mode not in m.RETURN_MODE_NAMES or azimuth > 36000 or toh_raw >= _HOUR_US:
+            self.stats.malformed += 1
+            return None
+        if not self._supported(product, toh_raw):
+            self.stats.unsupported_model += 1
+            return None
+
+        toh = self._unwrap(toh_raw)
+        closed: Scan | None = None
+        if self._scan is not None and (mode, product) != (
+            self._scan.return_mode,
+            self._scan.product,
+        ):
+            closed = self._close(complete=False)  # the sensor was reconfigured
+        missing = 0
+        if self._last_toh is not None:
+            step = toh - self._last_toh
+            if step == 0:
+                self.stats.duplicates += 1
+                return closed
+            if -self._max_gap_us <= step < 0:
+                self._insert_late(payload, t_host, toh)
+                return closed
+            if abs(step) > self._max_gap_us:
+                self.stats.time_jumps += 1
+                closed = self._close(complete=False) or closed
+            elif step > 1.5 * m.packet_period_ns(mode) / 1000:
+                missing = round(step * 1000 / m.packet_period_ns(mode)) - 1
+        if self._scan is not None and toh - self._scan.toh[0] > self._max_gap_us:
+            closed = self._close(complete=False) or closed  # no cut in sight: not spinning
+        scan = self._scan
+        if scan is None:
+            scan = self._scan = _ScanInProgress(self._next_starts_at_cut, mode, product)
+            self._next_starts_at_cut = False
+        scan.lost += missing
+        self.stats.lost += missing
+        self._last_toh = toh
+        scan.payloads.append(payload)
+        scan.t_host.append(t_host)
+        scan.toh.append(toh)
+
+        coverage = (azimuth - self._cut) % 36000
+        crossed = scan.coverage is not None and scan.coverage > 18000 and coverage < scan.coverage
+        scan.coverage = coverage
+        if crossed:
+            done = self._close(complete=scan.started_at_cut)
+            self._next_starts_at_cut = True
+            return done
+        return closed
+
+    def flush(self) -> Scan | None:
+        """Close the scan in progress (end of stream): it is partial."""
+        return self._close(complete=False)
+
+    def _unwrap(self, toh_raw: int) -> int:
+        """ToH wraps every hour; keep it increasing by choosing the hour nearest the last."""
+        if self._last_toh is None:
+            return toh_raw
+        base = self._last_toh - self._last_toh % _HOUR_US
+        candidates = (base - _HOUR_US + toh_raw, base + toh_raw, base + _HOUR_US + toh_raw)
+        return min(candidates, key=lambda c: abs(c - self._last_toh))
+
+    def _supported(self, product: int, toh_raw: int) -> bool:
+        if self._forced_model is not None or product in m.MODEL_BY_PRODUCT:
+            return True
+        if product != m.PRODUCT_HDL32E:
+            return False
+        if self._byte21_is_vlp16 is None:
+            scan = self._scan
+            if scan is None or scan.product != m.PRODUCT_HDL32E or not scan.toh:
+                return True  # undecided: keep it until the next packet shows the timing
+            step = (toh_raw - scan.toh[-1]) % _HOUR_US
+            self._byte21_is_vlp16 = m.looks_like_vlp16_timing(step)
+            if not self._byte21_is_vlp16:
+                # An HDL-32E after all: what was kept on trust is not ours to decode.
+                self.stats.unsupported_model += len(scan.payloads)
+                self._scan = None
+                self._last_toh = None
+        return self._byte21_is_vlp16
+
+    def _insert_late(self, payload: bytes, t_host: int, toh: int) -> None:
+        """Put a packet that arrived after a newer one back in place, if its scan is open."""
+        scan = self._scan
+        if scan is None or toh < scan.toh[0]:
+            self.stats.late += 1  # its scan was already closed
+            return
+        at = int(np.searchsorted(scan.toh, toh))
+        if at < len(scan.toh) and scan.toh[at] == toh:
+            self.stats.duplicates += 1
+            return
+        scan.payloads.insert(at, payload)
+        scan.t_host.insert(at, t_host)
+        scan.toh.insert(at, toh)
+        self.stats.out_of_order += 1
+        if scan.lost > 0:  # it was counted missing when the gap was seen
+            scan.lost -= 1
+            self.stats.lost -= 1
+
+    def _optics(self, product: int) -> m.LaserModel:
+        if self._forced_model is not None:
+            return self._forced_model
+        return m.MODEL_BY_PRODUCT.get(product, m.VLP16)
+
+    def _close(self, complete: bool) -> Scan | None:
+        scan, self._scan = self._scan, None
+        if scan is None:
+            return None
+        if (
+            scan.product == m.PRODUCT_HDL32E
+            and self._forced_model is None
+            and not self._byte21_is_vlp16
+        ):
+            self.stats.unsupported_model += len(scan.payloads)  # 0x21 timing never settled
+            return None
+        packets = view_packets(b"".join(scan.payloads))
+        ok = valid_packets(packets)
+        self.stats.malformed += int((~ok).sum())
+        if not ok.any():
+            return None
+        t_host = np.asarray(scan.t_host, dtype=np.int64)
+        toh_us = np.asarray(scan.toh, dtype=np.int64) % _HOUR_US
+        t_packet = resolve_hour(toh_us, t_host)
+        packets, t_packet = packets[ok], t_packet[ok]
+        optics = self._optics(scan.product)
+        points = decode_packets(packets, t_packet, optics)
+        mode_name = m.RETURN_MODE_NAMES[scan.return_mode]
+        duplicates = int(points["duplicate"].sum())
+        self.stats.scans += 1
+        self.stats.complete_scans += int(complete)
+        self.stats.points += len(points) - duplicates
+        self.stats.duplicate_returns += duplicates
+        last_firing = m.packet_period_ns(scan.return_mode) - m.SEQUENCE_NS + 15 * m.LASER_SLOT_NS
+        return Scan(
+            points=points,
+            t_start=int(t_packet[0]),
+            t_end=int(t_packet[-1]) + last_firing,
+            t_host=int(t_host[-1]),
+            complete=complete,
+            packets=len(packets),
+            lost_packets=scan.lost,
+            model=optics.name,
+            return_mode=mode_name,
+        )

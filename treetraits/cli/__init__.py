@@ -1,0 +1,46 @@
+"""The `treetraits` command line: one entry point, a sub-command per job.
+
+Errors the user can fix (a bad path, a port in use) print one clear line and exit 2;
+they never end in a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from treetraits import __version__
+from treetraits.cli import lidar
+from treetraits.errors import TreetraitsError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="treetraits",
+        description=(
+            "Onboard orchard tree mapper: reads a Velodyne VLP-16, a MAPIR Survey3N, GNSS "
+            "and wheel odometry without ROS, and writes each tree's width, height and NDVI."
+        ),
+    )
+    parser.add_argument("--version", action="version", version=f"treetraits {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    lidar.register(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except TreetraitsError as exc:
+        print(f"treetraits: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:  # e.g. `treetraits lidar info x | head`
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
