@@ -100,7 +100,7 @@ class ScanBatcher:
         if mode not in m.RETURN_MODE_NAMES or azimuth > 36000 or toh_raw >= _HOUR_US:
             self.stats.malformed += 1
             return None
-        if not self._supported(product, toh_raw):
+        if product != m.PRODUCT_VLP16 and not self._supported(product, toh_raw):
             self.stats.unsupported_model += 1
             return None
 
@@ -155,9 +155,8 @@ class ScanBatcher:
         """ToH wraps every hour; keep it increasing by choosing the hour nearest the last."""
         if self._last_toh is None:
             return toh_raw
-        base = self._last_toh - self._last_toh % _HOUR_US
-        candidates = (base - _HOUR_US + toh_raw, base + toh_raw, base + _HOUR_US + toh_raw)
-        return min(candidates, key=lambda c: abs(c - self._last_toh))
+        step = (toh_raw - self._last_toh) % _HOUR_US
+        return self._last_toh + (step - _HOUR_US if step > _HOUR_US // 2 else step)
 
     def _supported(self, product: int, toh_raw: int) -> bool:
         if self._forced_model is not None or product in m.MODEL_BY_PRODUCT:
@@ -219,7 +218,8 @@ class ScanBatcher:
         t_host = np.asarray(scan.t_host, dtype=np.int64)
         toh_us = np.asarray(scan.toh, dtype=np.int64) % _HOUR_US
         t_packet = resolve_hour(toh_us, t_host)
-        packets, t_packet = packets[ok], t_packet[ok]
+        if not ok.all():  # rare: skip the costly structured copy otherwise
+            packets, t_packet = packets[ok], t_packet[ok]
         optics = self._optics(scan.product)
         points = decode_packets(packets, t_packet, optics)
         mode_name = m.RETURN_MODE_NAMES[scan.return_mode]

@@ -8,6 +8,9 @@ documented in `docs/lidar.md`.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import lru_cache
+
 import numpy as np
 
 from drivers.records import POINT_DTYPE
@@ -30,15 +33,47 @@ PACKET_DTYPE = np.dtype(
 )
 assert PACKET_DTYPE.itemsize == m.DATA_PACKET_SIZE
 
-_RECORDS_PER_PACKET = m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
-
 # Per record j (0..31) of a block: firing sequence j // 16 and laser id j % 16.
 _RECORD = np.arange(m.RECORDS_PER_BLOCK)
 _LASER_OF_RECORD = _RECORD % m.LASERS
 # Firing time of record j after the first firing of its block.
 _T_IN_BLOCK_NS = (_RECORD // m.LASERS) * m.SEQUENCE_NS + _LASER_OF_RECORD * m.LASER_SLOT_NS
-# The same as a fraction of the block, to interpolate the azimuth between blocks.
-_FRACTION_OF_BLOCK = (_T_IN_BLOCK_NS / m.BLOCK_NS).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class _RecordTables:
+    """What a record's place in the packet (block b, record j) says about its point,
+    whatever the packet holds: (12, 32) grids that broadcast over a batch of packets."""
+
+    t_offset_ns: np.ndarray  # firing time after the packet's ToH
+    block_fraction: np.ndarray  # that time in firing blocks, to interpolate the azimuth
+    cos_elevation: np.ndarray
+    sin_elevation: np.ndarray
+    vertical_offset_m: np.ndarray
+    ring: np.ndarray
+    return_type: np.ndarray
+
+
+@lru_cache(maxsize=16)
+def _record_tables(dual: bool, last_return: bool, optics: m.LaserModel) -> _RecordTables:
+    block = np.arange(m.BLOCKS_PER_PACKET)[:, None]
+    # In dual mode blocks (0,1), (2,3)... are one firing: last return, then strongest.
+    firing_block = block // 2 if dual else block
+    laser = np.broadcast_to(_LASER_OF_RECORD, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK))
+    elevation = np.deg2rad(np.asarray(optics.elevation_deg, dtype=np.float64))[laser]
+    if dual:
+        return_type = np.where(block % 2 == 1, m.RETURN_TYPE_STRONGEST, m.RETURN_TYPE_LAST)
+    else:
+        return_type = m.RETURN_TYPE_LAST if last_return else m.RETURN_TYPE_STRONGEST
+    return _RecordTables(
+        t_offset_ns=(firing_block * m.BLOCK_NS + _T_IN_BLOCK_NS).astype(np.int64),
+        block_fraction=(_T_IN_BLOCK_NS / m.BLOCK_NS).astype(np.float32),
+        cos_elevation=np.cos(elevation).astype(np.float32),
+        sin_elevation=np.sin(elevation).astype(np.float32),
+        vertical_offset_m=(np.asarray(optics.vertical_offset_mm) / 1000)[laser].astype(np.float32),
+        ring=optics.ring[laser],
+        return_type=np.broadcast_to(return_type, laser.shape).astype(np.uint8),
+    )
 
 
 def view_packets(buffer: bytes | bytearray | memoryview | np.ndarray) -> np.ndarray:
@@ -53,7 +88,8 @@ def valid_packets(packets: np.ndarray) -> np.ndarray:
     blocks = packets["blocks"]
     flags_ok = (blocks["flag"] == m.BLOCK_FLAG).all(axis=1)
     azimuth_ok = (blocks["azimuth"] <= 36000).all(axis=1)
-    mode_ok = np.isin(packets["return_mode"], list(m.RETURN_MODE_NAMES))
+    mode = packets["return_mode"]
+    mode_ok = (mode >= min(m.RETURN_MODE_NAMES)) & (mode <= max(m.RETURN_MODE_NAMES))
     return flags_ok & azimuth_ok & mode_ok
 
 
@@ -89,60 +125,49 @@ def decode_packets(
     `valid_packets`; `t_packet_ns` is each packet's absolute ToH (see `resolve_hour`).
     Records with distance 0 (no return) are skipped. Points come in packet, block,
     firing sequence, laser order.
+
+    Everything is computed on (packets, 12, 32) grids against constant per-record tables
+    and compressed once by the "has a return" mask: no per-point integer arithmetic.
     """
-    n = len(packets)
-    if n == 0:
+    if len(packets) == 0:
         return np.empty(0, dtype=POINT_DTYPE)
     mode = int(packets["return_mode"][0])
     dual = mode == m.RETURN_DUAL
-    # In dual mode blocks (0,1), (2,3)... are one firing: last return, then strongest.
-    blocks_per_firing = 2 if dual else 1
-
+    tables = _record_tables(dual, mode == m.RETURN_LAST, optics)
     blocks = packets["blocks"]
-    distance = blocks["records"]["distance"].reshape(-1)
-    idx = np.flatnonzero(distance)
-    block_idx = idx // m.RECORDS_PER_BLOCK  # global block index
-    record = idx % m.RECORDS_PER_BLOCK
-    laser = record % m.LASERS
-    packet_idx = block_idx // m.BLOCKS_PER_PACKET
-    block_in_packet = block_idx % m.BLOCKS_PER_PACKET
-    firing_block_in_packet = block_in_packet // blocks_per_firing
+    records = blocks["records"]
+    distance = records["distance"]
 
-    firing_azimuth = blocks["azimuth"][:, ::blocks_per_firing].astype(np.int32)
-    rate = _rotation_rate(firing_azimuth)
-    firing_block = packet_idx * (m.BLOCKS_PER_PACKET // blocks_per_firing) + firing_block_in_packet
-    centideg = (
-        firing_azimuth.reshape(-1)[firing_block] + rate[packet_idx] * _FRACTION_OF_BLOCK[record]
+    # Every field is computed for every record, straight into a (packets, 12, 32) grid
+    # of points; the records with no return are dropped at the end in one compression.
+    # Per-point gathers and per-field compressions cost more than the few empty records.
+    grid = np.empty(distance.shape, dtype=POINT_DTYPE)
+    rng = distance * np.float32(m.DISTANCE_UNIT_M)
+    horizontal = rng * tables.cos_elevation
+
+    rate = _rotation_rate(blocks["azimuth"][:, :: 2 if dual else 1].astype(np.int32))
+    centideg = blocks["azimuth"][:, :, None] + (rate[:, None, None] * tables.block_fraction)
+    centideg[centideg >= 36000] -= 36000
+    azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=grid["azimuth"])
+    np.multiply(horizontal, np.cos(azimuth), out=grid["x"])
+    np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth), out=grid["y"])
+    np.add(rng * tables.sin_elevation, tables.vertical_offset_m, out=grid["z"])
+    np.add(
+        np.asarray(t_packet_ns, dtype=np.int64)[:, None, None],
+        tables.t_offset_ns,
+        out=grid["t"],
     )
-    azimuth = np.deg2rad(np.fmod(centideg, 36000.0, dtype=np.float32) / np.float32(100.0))
-
-    elevation = np.deg2rad(np.asarray(optics.elevation_deg, dtype=np.float64))
-    cos_el = np.cos(elevation).astype(np.float32)[laser]
-    sin_el = np.sin(elevation).astype(np.float32)[laser]
-    offset = (np.asarray(optics.vertical_offset_mm, dtype=np.float32) / 1000)[laser]
-    rng = distance[idx].astype(np.float32) * np.float32(m.DISTANCE_UNIT_M)
-    horizontal = rng * cos_el
-
-    out = np.empty(idx.size, dtype=POINT_DTYPE)
-    out["x"] = horizontal * np.cos(azimuth)
-    out["y"] = -horizontal * np.sin(azimuth)
-    out["z"] = rng * sin_el + offset
-    out["azimuth"] = azimuth
-    out["t"] = (
-        np.asarray(t_packet_ns, dtype=np.int64)[packet_idx]
-        + firing_block_in_packet * m.BLOCK_NS
-        + _T_IN_BLOCK_NS[record]
-    )
-    out["intensity"] = blocks["records"]["reflectivity"].reshape(-1)[idx]
-    out["ring"] = optics.ring[laser]
+    grid["intensity"] = records["reflectivity"]
+    grid["ring"] = tables.ring
+    grid["return_type"] = tables.return_type
     if dual:
-        strongest = (block_in_packet & 1).astype(bool)
-        out["return_type"] = np.where(strongest, m.RETURN_TYPE_STRONGEST, m.RETURN_TYPE_LAST)
-        # The partner record in the even (last-return) block sits one block earlier.
-        partner = np.where(strongest, idx - m.RECORDS_PER_BLOCK, idx)
-        out["duplicate"] = strongest & (distance[partner] == distance[idx])
+        # A single echo is reported by both blocks of the pair: flag the repeat.
+        grid["duplicate"][:, 0::2] = 0
+        grid["duplicate"][:, 1::2] = distance[:, 1::2] == distance[:, 0::2]
     else:
-        last = mode == m.RETURN_LAST
-        out["return_type"] = m.RETURN_TYPE_LAST if last else m.RETURN_TYPE_STRONGEST
-        out["duplicate"] = 0
-    return out
+        grid["duplicate"] = 0
+
+    has_return = (distance != 0).reshape(-1)
+    # Compress whole 28-byte records at once (a void view copies rows as raw bytes).
+    rows = grid.reshape(-1).view(np.dtype((np.void, POINT_DTYPE.itemsize)))
+    return rows[has_return].view(POINT_DTYPE)
