@@ -231,6 +231,9 @@ def run_listen(args: argparse.Namespace) -> int:
         pass
     finally:
         reader.close()
+    last = reader.batcher.flush()  # the scan in progress when listening stopped
+    if last is not None:
+        summary.add_scan(last)
     facts = summary.as_dict(reader.counters())
     print(json.dumps(facts, indent=1) if args.json else _format_facts("live", facts))
     return 0

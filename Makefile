@@ -1,0 +1,85 @@
+# treetraits: `make demo` and `make test` set up whatever is missing, then run.
+# Setup is idempotent: system packages are checked with dpkg and installed only when
+# missing (as root, or through sudo); the virtualenv is rebuilt only when pyproject.toml
+# changes.
+
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+# The first Python >= 3.10 on PATH (override: make test PYTHON=/usr/bin/python3.12).
+PYTHON ?= $(shell for p in python3.13 python3.12 python3.11 python3.10 python3; do \
+	command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info < (3, 10))' \
+	2>/dev/null && { echo $$p; break; }; done)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEMO_CAPTURE := tests/fixtures/vlp16/veloview_vlp16_20hz_strongest.pcap
+DEMO_OUT := out/demo
+
+# Runtime libraries the wheels load (libusb for pyusb, libGL/libgomp for open3d and
+# OpenCV) and what building systemd-python needs (libsystemd headers, pkg-config, a C
+# compiler and the Python headers).
+SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libgomp1 libsystemd-dev pkg-config gcc
+
+.PHONY: help setup system-packages demo test lint bench clean
+
+help:
+	@echo "make demo    set up, then decode a bundled real VLP-16 capture: summary + PCD scans"
+	@echo "make test    set up, then run the whole test suite and the linter"
+	@echo "make bench   run the benchmarks in bench/"
+	@echo "make clean   remove the virtualenv and outputs"
+
+setup: system-packages $(STAMP)
+
+system-packages:
+	@if [ -z "$(PYTHON)" ]; then \
+		echo "error: treetraits needs Python >= 3.10 (see README: 'Python on the robot')" >&2; \
+		exit 1; \
+	fi
+	@if ! command -v dpkg-query >/dev/null 2>&1; then \
+		echo "note: not a Debian/Ubuntu system; make sure these are installed: $(SYSTEM_PACKAGES)"; \
+		exit 0; \
+	fi; \
+	ver=$$($(PYTHON) -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")'); \
+	wanted="$(SYSTEM_PACKAGES)"; \
+	$(PYTHON) -c 'import ensurepip, venv' 2>/dev/null || wanted="$$wanted python$$ver-venv"; \
+	$(PYTHON) -c 'import sysconfig, os, sys; \
+		sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
+		|| wanted="$$wanted python$$ver-dev"; \
+	missing=""; \
+	for p in $$wanted; do \
+		dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+		if [ "$$(id -u)" = 0 ]; then sudo=""; \
+		elif command -v sudo >/dev/null 2>&1; then sudo="sudo"; \
+		else echo "error: need root or sudo to install:$$missing" >&2; exit 1; fi; \
+		echo "installing system packages:$$missing"; \
+		$$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $$missing \
+		|| { $$sudo apt-get update -q && \
+		     $$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $$missing; }; \
+	fi
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+demo: setup
+	$(BIN)/treetraits lidar info $(DEMO_CAPTURE)
+	$(BIN)/treetraits lidar export $(DEMO_CAPTURE) --out $(DEMO_OUT) --full-only
+
+test: setup
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest
+
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+bench: setup
+	$(BIN)/python bench/decode.py
+
+clean:
+	rm -rf $(VENV) out *.egg-info
