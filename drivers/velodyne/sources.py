@@ -18,6 +18,7 @@ import struct
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
+from decimal import Decimal
 from pathlib import Path
 from typing import Protocol
 from urllib.parse import parse_qs, urlsplit
@@ -30,10 +31,13 @@ from treetraits.errors import SourceError
 DATA_PORT = 2368
 TELEMETRY_PORT = 8308
 DEFAULT_RCVBUF = 8 * 1024 * 1024  # ~5 s of dual-return traffic; the kernel caps it at rmem_max
+_CLOSE_POLL_S = 0.5
 _SO_RXQ_OVFL = 40  # Linux: per-socket count of datagrams dropped for a full buffer
 
 _PCAP_MAGICS = {b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d"}
 _PCAPNG_MAGIC = b"\x0a\x0d\x0d\x0a"
+_PCAP_LE_MAGICS = {b"\xd4\xc3\xb2\xa1", b"\x4d\x3c\xb2\xa1"}
+_LINKTYPE_RAW = 101  # raw IP as stored in files; dpkt's DLT_RAW is the in-memory 12 (14)
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
@@ -104,6 +108,9 @@ class PcapSource:
         try:
             magic = self._file.read(4)
             self._file.seek(0)
+            self._pcapng = magic == _PCAPNG_MAGIC
+            self._caplen = struct.Struct("<I" if magic in _PCAP_LE_MAGICS else ">I")
+            self._size = os.fstat(self._file.fileno()).st_size
             reader_type = dpkt.pcapng.Reader if magic == _PCAPNG_MAGIC else dpkt.pcap.Reader
             self._reader = reader_type(self._file)
             self._link = _link_decoder(self._reader.datalink(), path)
@@ -124,11 +131,25 @@ class PcapSource:
             except (dpkt.dpkt.Error, struct.error, ValueError):
                 self.stats.truncated = True  # the file ends inside a record
                 return
+            if self._cut_short(frame):
+                self.stats.truncated = True  # the file ends inside a record's frame
+                return
             payload = self._udp_payload(frame)
             if payload is None:
                 continue
             self.stats.count(payload)
-            yield LidarPacket(payload, round(ts * 1e6) * 1000)
+            yield LidarPacket(payload, _ns(ts))
+
+    def _cut_short(self, frame: bytes) -> bool:
+        """dpkt's pcap reader yields a short frame when the file ends inside a record's data:
+        at the end of the file, compare with the caplen in that record's header."""
+        end = self._file.tell()
+        if self._pcapng or end < self._size:
+            return False
+        self._file.seek(end - len(frame) - 8)  # ts_sec, ts_frac, caplen, len
+        (caplen,) = self._caplen.unpack(self._file.read(4))
+        self._file.seek(end)
+        return len(frame) < caplen
 
     def _udp_payload(self, frame: bytes) -> bytes | None:
         try:
@@ -159,12 +180,20 @@ class PcapSource:
         self._file.close()
 
 
+def _ns(ts: float | Decimal) -> int:
+    """A capture time in ns: dpkt gives float seconds, a Decimal for nanosecond pcaps."""
+    if isinstance(ts, Decimal):
+        return int(ts * 1_000_000_000)
+    return round(ts * 1e6) * 1000
+
+
 def _link_decoder(datalink: int, path: str | Path):
     decoders = {
         dpkt.pcap.DLT_EN10MB: dpkt.ethernet.Ethernet,
         dpkt.pcap.DLT_LINUX_SLL: dpkt.sll.SLL,
         dpkt.pcap.DLT_LINUX_SLL2: dpkt.sll2.SLL2,
         dpkt.pcap.DLT_RAW: dpkt.ip.IP,
+        _LINKTYPE_RAW: dpkt.ip.IP,
         dpkt.pcap.DLT_IPV4: dpkt.ip.IP,
         dpkt.pcap.DLT_IPV6: dpkt.ip6.IP6,
         dpkt.pcap.DLT_NULL: dpkt.loopback.Loopback,
@@ -259,7 +288,10 @@ class UdpSource:
     ):
         self.uri = f"udp://{host}:{port}"
         self.stats = SourceStats()
-        self.sensor_ip = str(ipaddress.ip_address(sensor_ip)) if sensor_ip else None
+        try:
+            self.sensor_ip = str(ipaddress.ip_address(sensor_ip)) if sensor_ip else None
+        except ValueError as exc:
+            raise SourceError(f"sensor IP {sensor_ip!r} is not an IPv4 or IPv6 address") from exc
         self._selector = selectors.DefaultSelector()
         self._sockets: list[socket.socket] = []
         self._closed = False
@@ -282,7 +314,7 @@ class UdpSource:
     def _bind(host: str, port: int, rcvbuf: int) -> socket.socket:
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_DGRAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        # No SO_REUSEADDR: a second reader on the port must fail loudly, not share it.
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
         with contextlib.suppress(OSError):  # not on every kernel
             sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
@@ -304,8 +336,17 @@ class UdpSource:
         """The next accepted packet, or None when `timeout` seconds pass without one."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while not self._closed:
-            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            for key, _ in self._selector.select(remaining):
+            # Wait in slices so a close() from another thread ends even an unbounded read.
+            remaining = _CLOSE_POLL_S
+            if deadline is not None:
+                remaining = min(remaining, max(0.0, deadline - time.monotonic()))
+            try:
+                events = self._selector.select(remaining)
+            except (OSError, ValueError):
+                if self._closed:
+                    return None  # closed by another thread while we were about to wait
+                raise
+            for key, _ in events:
                 packet = self._receive(key.fileobj)
                 if packet is not None:
                     return packet
@@ -336,7 +377,7 @@ class UdpSource:
 
     def __iter__(self) -> Iterator[LidarPacket]:
         while not self._closed:
-            packet = self.read(timeout=0.5)
+            packet = self.read()
             if packet is not None:
                 yield packet
 

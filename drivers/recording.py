@@ -1,0 +1,588 @@
+"""Recording format v1: every sensor's raw bytes in one MCAP file, written and read back.
+
+The onboard recorder writes what each sensor sent, exactly as received, so a field day can
+be replayed through the same drivers later. The format (frozen, see ARCHITECTURE.md):
+
+- one MCAP file, zstd-compressed chunks;
+- one channel per sensor stream, no schema (schema id 0), the `message_encoding` naming the
+  wire format (`TOPIC_ENCODINGS`);
+- `log_time` = host receive time, `publish_time` = the sensor's own UTC time where it has
+  one, else the host time; both in ns since the Unix epoch;
+- a metadata record named `treetraits` holding `format_version` ("1"), `software` and
+  `calibration` (a JSON object as a string);
+- attachments may hold the field map (`field_map.geojson`).
+
+`RecordingWriter` writes such a file; `read_recording` reads one linearly, so a file cut by
+a power failure still yields every message of every chunk completed before the cut.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import operator
+import os
+import struct
+import time
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any
+
+import zstandard
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import (
+    Attachment,
+    Channel,
+    Chunk,
+    DataEnd,
+    Footer,
+    Header,
+    McapRecord,
+    Message,
+    Metadata,
+)
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+
+import treetraits
+from treetraits.errors import SourceError
+
+FORMAT_VERSION = "1"
+METADATA_NAME = "treetraits"
+SOFTWARE = f"treetraits {treetraits.__version__}"
+
+LIDAR_PACKETS = "/lidar/packets"
+LIDAR_TELEMETRY = "/lidar/telemetry"
+CAMERA_JPEG = "/camera/jpeg"
+GNSS_NMEA = "/gnss/nmea"
+WHEELS_JACKAL = "/wheels/jackal"
+WHEELS_BRIDGE = "/wheels/bridge"
+
+# Topic -> message_encoding, the only channels a v1 recording is written with.
+TOPIC_ENCODINGS: Mapping[str, str] = {
+    LIDAR_PACKETS: "velodyne-data",  # one 1206-byte UDP payload from port 2368
+    LIDAR_TELEMETRY: "velodyne-position",  # one 512-byte UDP payload from port 8308
+    CAMERA_JPEG: "jpeg",
+    GNSS_NMEA: "nmea0183",
+    WHEELS_JACKAL: "rosserial",
+    WHEELS_BRIDGE: "treetraits-bridge",
+}
+
+FIELD_MAP_NAME = "field_map.geojson"
+FIELD_MAP_MEDIA_TYPE = "application/geo+json"
+
+# Chunks are compressed and written whole, so a power cut loses the chunk in progress:
+# 256 KiB is about a second of VLP-16 traffic.
+DEFAULT_CHUNK_SIZE = 256 * 1024
+# No record of a v1 recording (chunk, attachment), compressed or not, is larger than this;
+# a bigger length read from a file is garbage (a torn write) and ends the reading.
+RECORD_SIZE_LIMIT = 64 * 1024 * 1024
+
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_U32 = 1 << 32
+_U64 = 1 << 64
+
+
+class _CorruptRecordError(Exception):
+    """A length or size in the file that no valid v1 recording has."""
+
+
+# What mcap and zstandard raise on a torn or corrupt file (CRC mismatches are ValueErrors,
+# short fields struct.errors, bad strings UnicodeDecodeErrors).
+_READ_ERRORS = (McapError, ValueError, struct.error, zstandard.ZstdError, _CorruptRecordError)
+
+
+@dataclass(frozen=True, slots=True)
+class RecordedMessage:
+    """One message of a recording: the sensor's bytes exactly as received.
+
+    `log_time` is the host receive time, `publish_time` the sensor's own UTC time (or the
+    host time when the sensor has none), both ns since the Unix epoch; `sequence` counts the
+    messages of the topic from 0 in the writer.
+    """
+
+    topic: str
+    log_time: int
+    publish_time: int
+    sequence: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingMetadata:
+    """The `treetraits` metadata record of a recording, calibration parsed back to a dict."""
+
+    format_version: str
+    software: str
+    calibration: dict[str, Any]
+
+
+@dataclass(frozen=True, slots=True)
+class RecordedAttachment:
+    """An attachment of a recording (e.g. the field map)."""
+
+    name: str
+    media_type: str
+    log_time: int
+    create_time: int
+    data: bytes
+
+
+def _time_ns(value: int, what: str) -> int:
+    """An MCAP timestamp: an integer in [0, 2**64)."""
+    try:
+        value = operator.index(value)
+    except TypeError:
+        raise TypeError(f"{what} must be an int in ns, got {type(value).__name__}") from None
+    if not 0 <= value < _U64:
+        raise ValueError(f"{what} must be in [0, 2**64) ns, got {value}")
+    return value
+
+
+class RecordingWriter:
+    """Writes a recording (format v1) to a path or a binary stream.
+
+    Use it as a context manager, or call `close()`: only a closed recording has its summary
+    (indexes, statistics) and is fsynced. A recording left unclosed by a crash is still
+    readable up to its last complete chunk.
+
+    A path is created, never overwritten unless `overwrite` is set. A stream must support
+    `write()` and `tell()`; it is flushed (and fsynced when it has a file descriptor) but
+    not closed. `calibration` must be JSON-serializable; it is stored as a JSON string.
+    """
+
+    def __init__(
+        self,
+        output: str | os.PathLike[str] | IO[bytes],
+        *,
+        calibration: Mapping[str, Any] | None = None,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        overwrite: bool = False,
+    ):
+        if chunk_size <= 0:
+            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+        calibration_json = json.dumps(
+            dict(calibration or {}), sort_keys=True, allow_nan=False, separators=(",", ":")
+        )
+        self._path: Path | None
+        self._file: IO[bytes]
+        if isinstance(output, (str, os.PathLike)):
+            self._path = Path(output)
+            self._file = open(self._path, "wb" if overwrite else "xb")  # noqa: SIM115
+        else:
+            self._path = None
+            self._file = output
+        self._channels: dict[str, int] = {}
+        self._sequences: dict[str, int] = {}
+        self._closed = False
+        try:
+            self._writer = Writer(
+                self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD
+            )
+            self._writer.start(profile="", library=f"{SOFTWARE}; {LIBRARY_IDENTIFIER}")
+            self._writer.add_metadata(
+                METADATA_NAME,
+                {
+                    "format_version": FORMAT_VERSION,
+                    "software": SOFTWARE,
+                    "calibration": calibration_json,
+                },
+            )
+        except BaseException:
+            if self._path is not None:
+                self._file.close()
+            raise
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def write(
+        self, topic: str, data: bytes, log_time: int, publish_time: int | None = None
+    ) -> None:
+        """Append one message: `data` exactly as received, times in ns since the epoch.
+
+        `publish_time` defaults to `log_time` (for sensors without their own clock).
+        Raises ValueError for a topic outside `TOPIC_ENCODINGS`.
+        """
+        if self._closed:
+            raise ValueError("write to a closed recording")
+        encoding = TOPIC_ENCODINGS.get(topic)
+        if encoding is None:
+            raise ValueError(
+                f"unknown topic {topic!r}: a v1 recording carries only {', '.join(TOPIC_ENCODINGS)}"
+            )
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise TypeError(f"data must be bytes, got {type(data).__name__}")
+        log_time = _time_ns(log_time, "log_time")
+        publish_time = log_time if publish_time is None else _time_ns(publish_time, "publish_time")
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            channel_id = self._writer.register_channel(topic, encoding, schema_id=0)
+            self._channels[topic] = channel_id
+            self._sequences[topic] = 0
+        sequence = self._sequences[topic]
+        self._sequences[topic] = (sequence + 1) % _U32  # MCAP sequences are uint32
+        self._writer.add_message(
+            channel_id,
+            log_time=log_time,
+            data=bytes(data),
+            publish_time=publish_time,
+            sequence=sequence,
+        )
+
+    def attach(
+        self,
+        name: str,
+        data: bytes,
+        media_type: str,
+        *,
+        log_time: int | None = None,
+        create_time: int = 0,
+    ) -> None:
+        """Attach a file (e.g. `FIELD_MAP_NAME`, `FIELD_MAP_MEDIA_TYPE`).
+
+        `log_time` defaults to now; `create_time` 0 means unknown.
+        """
+        if self._closed:
+            raise ValueError("attach to a closed recording")
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise TypeError(f"data must be bytes, got {type(data).__name__}")
+        self._writer.add_attachment(
+            create_time=_time_ns(create_time, "create_time"),
+            log_time=_time_ns(time.time_ns() if log_time is None else log_time, "log_time"),
+            name=name,
+            media_type=media_type,
+            data=bytes(data),
+        )
+
+    def close(self) -> None:
+        """Write the last chunk and the summary, flush and fsync. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._writer.finish()
+        finally:
+            try:
+                self._file.flush()
+                self._fsync()
+            finally:
+                if self._path is not None:
+                    self._file.close()
+
+    def _fsync(self) -> None:
+        if self._path is None:
+            # A caller's stream: fsync only when it is a real file.
+            with contextlib.suppress(AttributeError, OSError):
+                os.fsync(self._file.fileno())
+            return
+        os.fsync(self._file.fileno())
+        # The new directory entry too, so the file itself survives a power cut.
+        with contextlib.suppress(OSError):
+            fd = os.open(self._path.parent, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class _CappedFile:
+    """A binary file that refuses reads longer than `cap` and clamps long reads to what is
+    left in the file.
+
+    mcap's readers trust every length inside a record, and `read(n)` allocates n bytes
+    before reading: a garbage length in a torn file must not become a MemoryError.
+    """
+
+    _CHECK_ABOVE = 1 << 20
+
+    def __init__(self, file: IO[bytes], cap: int):
+        self._file = file
+        self._cap = cap
+
+    def read(self, size: int | None = -1) -> bytes:
+        if size is None or size < 0 or size > self._cap:
+            raise _CorruptRecordError(f"read of {size} bytes (limit {self._cap})")
+        if size > self._CHECK_ABOVE:
+            remaining = os.fstat(self._file.fileno()).st_size - self._file.tell()
+            size = max(0, min(size, remaining))
+        return self._file.read(size)
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+
+def _chunk_records(chunk: Chunk, limit: int) -> list[McapRecord]:
+    """The records inside a chunk, its CRC checked; sizes over `limit` are corrupt."""
+    if chunk.uncompressed_size > limit:
+        raise _CorruptRecordError(f"chunk of {chunk.uncompressed_size} bytes uncompressed")
+    if chunk.compression == "zstd":
+        content_size = zstandard.get_frame_parameters(chunk.data).content_size
+        if content_size != zstandard.CONTENTSIZE_UNKNOWN and content_size > limit:
+            raise _CorruptRecordError(f"zstd frame of {content_size} bytes")
+    return breakup_chunk(chunk, validate_crc=True)
+
+
+class RecordingReader:
+    """Reads a recording (format v1) linearly, in file order.
+
+    Iterating yields `RecordedMessage`s of the wanted `topics` (all topics, known or not,
+    when None). The file is read once, front to back: a file cut short (a power cut) or
+    corrupt yields every message of every intact chunk before the damage, then stops
+    quietly with `truncated` set. Iterate once; the file closes when iteration ends.
+
+    `metadata` is read when the reader is made; it is None only when the file ends before
+    its metadata record. `attachments` (name -> `RecordedAttachment`, the last one of a
+    name wins) are read on first use, from the summary's index when the file is complete.
+
+    Raises `SourceError` for a missing file, a file that is not MCAP, or a recording whose
+    `format_version` is not "1" (or that has no `treetraits` metadata at all).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        topics: Iterable[str] | None = None,
+        *,
+        record_size_limit: int = RECORD_SIZE_LIMIT,
+    ):
+        self.path = Path(path)
+        if isinstance(topics, str):
+            topics = [topics]
+        self.topics: frozenset[str] | None = None if topics is None else frozenset(topics)
+        self.truncated = False
+        self.metadata: RecordingMetadata | None = None
+        self._limit = record_size_limit
+        self._attachments: dict[str, RecordedAttachment] | None = None
+        self._iterated = False
+        self._closed = False
+        self._pending: list[McapRecord] = []
+        self._file = self._open()
+        try:
+            head = self._file.read(len(_MCAP_MAGIC))
+            if head != _MCAP_MAGIC and not (
+                len(head) < len(_MCAP_MAGIC) and _MCAP_MAGIC.startswith(head)
+            ):
+                raise SourceError(
+                    f"{self.path}: not an MCAP file (expected a treetraits recording, format "
+                    f"v{FORMAT_VERSION}: an MCAP file starting with {_MCAP_MAGIC!r}; "
+                    f"found {head!r})"
+                )
+            self._file.seek(0)
+            self._records = self._guarded(self._file)
+            metadata = self._read_front()
+            if metadata is None and not self.truncated:
+                metadata = self._side_records()[0]
+            if metadata is not None:
+                self.metadata = self._parse_metadata(metadata)
+            elif not self.truncated:
+                raise SourceError(
+                    f"{self.path}: MCAP file without a {METADATA_NAME!r} metadata record "
+                    f"(expected a treetraits recording, format v{FORMAT_VERSION})"
+                )
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self) -> IO[bytes]:
+        try:
+            return open(self.path, "rb")
+        except OSError as error:
+            raise SourceError(
+                f"{self.path}: cannot open ({error.strerror or error}); expected a treetraits "
+                f"recording (.mcap)"
+            ) from error
+
+    def _guarded(self, file: IO[bytes]) -> Iterator[McapRecord]:
+        """The file's top-level records (chunks not opened); stops at a torn or corrupt
+        record, setting `truncated`. Also set when the file ends without its footer."""
+        reader = StreamReader(
+            _CappedFile(file, self._limit),  # type: ignore[arg-type]
+            emit_chunks=True,
+            record_size_limit=self._limit,
+        )
+        try:
+            yield from reader.records
+        except _READ_ERRORS:
+            if not self._closed:  # not a read from a file closed under us
+                self.truncated = True
+
+    def _read_front(self) -> Metadata | None:
+        """Read the records before the first chunk, where the writer puts the metadata,
+        keeping them for iteration. The `treetraits` metadata, or None if not there."""
+        first = True
+        for record in self._records:
+            if first and not isinstance(record, Header):
+                self.truncated = True  # the magic is right but no header follows: corrupt
+                self._records = iter(())
+                return None
+            first = False
+            if isinstance(record, Metadata) and record.name == METADATA_NAME:
+                return record
+            self._pending.append(record)
+            if isinstance(record, (Chunk, Message, DataEnd, Footer)):
+                return None
+        return None
+
+    def _parse_metadata(self, record: Metadata) -> RecordingMetadata:
+        fields = record.metadata
+        version = fields.get("format_version")
+        if version != FORMAT_VERSION:
+            raise SourceError(
+                f"{self.path}: recording format_version {version!r}, this software "
+                f"({SOFTWARE}) reads format {FORMAT_VERSION!r} only"
+            )
+        try:
+            calibration = json.loads(fields.get("calibration") or "{}")
+        except ValueError as error:
+            raise SourceError(
+                f"{self.path}: calibration in the {METADATA_NAME!r} metadata is not JSON ({error})"
+            ) from error
+        if not isinstance(calibration, dict):
+            raise SourceError(
+                f"{self.path}: calibration in the {METADATA_NAME!r} metadata is a JSON "
+                f"{type(calibration).__name__}, expected an object"
+            )
+        return RecordingMetadata(version, fields.get("software", ""), calibration)
+
+    def __iter__(self) -> Iterator[RecordedMessage]:
+        if self._iterated:
+            raise RuntimeError(f"{self.path}: a RecordingReader can be iterated only once")
+        self._iterated = True
+        return self._messages()
+
+    def _messages(self) -> Iterator[RecordedMessage]:
+        channels: dict[int, Channel] = {}
+        try:
+            pending, self._pending = self._pending, []
+            for record in _chain(pending, self._records):
+                if isinstance(record, Chunk):
+                    try:
+                        inner = _chunk_records(record, self._limit)
+                    except _READ_ERRORS:
+                        self.truncated = True
+                        return
+                else:
+                    inner = [record]
+                for item in inner:
+                    if isinstance(item, Channel):
+                        channels[item.id] = item
+                    elif isinstance(item, Message):
+                        channel = channels.get(item.channel_id)
+                        if channel is None:  # a message before its channel: corrupt
+                            self.truncated = True
+                            return
+                        if self.topics is None or channel.topic in self.topics:
+                            yield RecordedMessage(
+                                channel.topic,
+                                item.log_time,
+                                item.publish_time,
+                                item.sequence,
+                                item.data,
+                            )
+        finally:
+            self._file.close()
+
+    @property
+    def attachments(self) -> dict[str, RecordedAttachment]:
+        """The attachments by name (read on first use)."""
+        if self._attachments is None:
+            self._side_records()
+        assert self._attachments is not None
+        return self._attachments
+
+    def _side_records(self) -> tuple[Metadata | None, dict[str, RecordedAttachment]]:
+        """The `treetraits` metadata and the attachments, wherever they are in the file:
+        through the summary's indexes when the file is complete, else by a linear scan
+        that skips chunks without opening them."""
+        with self._open() as file:
+            found = self._indexed_side_records(file)
+            if found is None:
+                file.seek(0)
+                found = [r for r in self._guarded(file) if isinstance(r, (Metadata, Attachment))]
+        metadata = next(
+            (r for r in found if isinstance(r, Metadata) and r.name == METADATA_NAME), None
+        )
+        self._attachments = {
+            r.name: RecordedAttachment(r.name, r.media_type, r.log_time, r.create_time, r.data)
+            for r in found
+            if isinstance(r, Attachment)
+        }
+        return metadata, self._attachments
+
+    def _indexed_side_records(self, file: IO[bytes]) -> list[Metadata | Attachment] | None:
+        """Metadata and attachments through the summary's indexes, or None when the file
+        has no complete, consistent summary (truncated, or written without indexes)."""
+        try:
+            file.seek(-len(_MCAP_MAGIC), io.SEEK_END)
+            if file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+                return None
+            file.seek(0)
+            reader = SeekingReader(
+                _CappedFile(file, self._limit),  # type: ignore[arg-type]
+                record_size_limit=self._limit,
+            )
+            summary = reader.get_summary()
+            if summary is None or summary.statistics is None:
+                return None
+            stats = summary.statistics
+            if (
+                len(summary.metadata_indexes) != stats.metadata_count
+                or len(summary.attachment_indexes) != stats.attachment_count
+            ):
+                return None
+            return [*reader.iter_metadata(), *reader.iter_attachments()]
+        except (*_READ_ERRORS, OSError):
+            return None
+
+    def close(self) -> None:
+        """Close the file (iteration then ends). Idempotent."""
+        self._closed = True
+        file = getattr(self, "_file", None)
+        if file is not None:
+            file.close()
+
+    def __enter__(self) -> RecordingReader:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def _chain(first: list[McapRecord], rest: Iterator[McapRecord]) -> Iterator[McapRecord]:
+    yield from first
+    yield from rest
+
+
+def read_recording(
+    path: str | os.PathLike[str],
+    topics: Iterable[str] | None = None,
+    *,
+    record_size_limit: int = RECORD_SIZE_LIMIT,
+) -> RecordingReader:
+    """Open a recording for reading; see `RecordingReader`."""
+    return RecordingReader(path, topics, record_size_limit=record_size_limit)
