@@ -16,10 +16,10 @@ STAMP := $(VENV)/.installed
 DEMO_CAPTURE := tests/fixtures/vlp16/veloview_vlp16_20hz_strongest.pcap
 DEMO_OUT := out/demo
 
-# Runtime libraries the wheels load (libusb for pyusb, libGL/libgomp for open3d and
+# Runtime libraries the wheels load (libusb for pyusb, libGL/libEGL/libgomp for open3d and
 # OpenCV) and what building systemd-python needs (libsystemd headers, pkg-config, a C
 # compiler and the Python headers).
-SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libgomp1 libsystemd-dev pkg-config gcc
+SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libgomp1 libsystemd-dev pkg-config gcc
 
 .PHONY: help setup system-packages demo test lint bench clean
 

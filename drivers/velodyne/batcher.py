@@ -26,6 +26,7 @@ _FLAG_LO = b"\xff" * m.BLOCKS_PER_PACKET
 _FLAG_HI = b"\xee" * m.BLOCKS_PER_PACKET
 _LAST_BLOCK_AZIMUTH = (m.BLOCKS_PER_PACKET - 1) * 100 + 2
 _TAIL = struct.Struct("<IBB")  # ToH, return mode, product at byte 1200
+_HDL32E_STEP_US = 553  # ToH step between HDL-32E packets (one 32-laser firing per block)
 
 
 @dataclass
@@ -168,8 +169,12 @@ class ScanBatcher:
             if scan is None or scan.product != m.PRODUCT_HDL32E or not scan.toh:
                 return True  # undecided: keep it until the next packet shows the timing
             step = (toh_raw - scan.toh[-1]) % _HOUR_US
-            self._byte21_is_vlp16 = m.looks_like_vlp16_timing(step)
-            if not self._byte21_is_vlp16:
+            if m.looks_like_vlp16_timing(step):
+                self._byte21_is_vlp16 = True
+            elif abs(step - _HDL32E_STEP_US) >= 30:
+                return True  # repeated, reordered or after a loss: says nothing yet, keep it
+            else:
+                self._byte21_is_vlp16 = False
                 # An HDL-32E after all: what was kept on trust is not ours to decode.
                 self.stats.unsupported_model += len(scan.payloads)
                 self._scan = None
@@ -215,9 +220,11 @@ class ScanBatcher:
         self.stats.malformed += int((~ok).sum())
         if not ok.any():
             return None
-        t_host = np.asarray(scan.t_host, dtype=np.int64)
-        toh_us = np.asarray(scan.toh, dtype=np.int64) % _HOUR_US
-        t_packet = resolve_hour(toh_us, t_host)
+        # The hour comes from the host clock once per scan; within the scan the device
+        # clock alone orders the packets, so a host clock step cannot bend a scan's times.
+        toh = np.asarray(scan.toh, dtype=np.int64)
+        t_first = int(resolve_hour(np.array([toh[0] % _HOUR_US]), np.array([scan.t_host[0]]))[0])
+        t_packet = t_first + (toh - toh[0]) * 1000
         if not ok.all():  # rare: skip the costly structured copy otherwise
             packets, t_packet = packets[ok], t_packet[ok]
         optics = self._optics(scan.product)
@@ -233,7 +240,7 @@ class ScanBatcher:
             points=points,
             t_start=int(t_packet[0]),
             t_end=int(t_packet[-1]) + last_firing,
-            t_host=int(t_host[-1]),
+            t_host=scan.t_host[-1],
             complete=complete,
             packets=len(packets),
             lost_packets=scan.lost,
