@@ -26,7 +26,6 @@ _FLAG_LO = b"\xff" * m.BLOCKS_PER_PACKET
 _FLAG_HI = b"\xee" * m.BLOCKS_PER_PACKET
 _LAST_BLOCK_AZIMUTH = (m.BLOCKS_PER_PACKET - 1) * 100 + 2
 _TAIL = struct.Struct("<IBB")  # ToH, return mode, product at byte 1200
-_HDL32E_STEP_US = 553  # ToH step between HDL-32E packets (one 32-laser firing per block)
 
 
 @dataclass
@@ -171,7 +170,7 @@ class ScanBatcher:
             step = (toh_raw - scan.toh[-1]) % _HOUR_US
             if m.looks_like_vlp16_timing(step):
                 self._byte21_is_vlp16 = True
-            elif abs(step - _HDL32E_STEP_US) >= 30:
+            elif not m.looks_like_hdl32e_timing(step):
                 return True  # repeated, reordered or after a loss: says nothing yet, keep it
             else:
                 self._byte21_is_vlp16 = False

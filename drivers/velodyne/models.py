@@ -163,7 +163,17 @@ def packet_period_ns(return_mode: int) -> int:
     return PACKET_NS_DUAL if return_mode == RETURN_DUAL else PACKET_NS_SINGLE
 
 
+_TIMING_TOLERANCE_US = 30
+HDL32E_PACKET_US = 552.96  # 12 blocks of one 46.08 us firing cycle
+
+
 def looks_like_vlp16_timing(toh_step_us: float) -> bool:
     """True when a ToH step between packets fits a 16-laser sensor (1327 us single,
-    664 us dual), not an HDL-32E (553 us): settles the ambiguous product byte 0x21."""
-    return any(abs(toh_step_us - p / 1000) < 30 for p in (PACKET_NS_SINGLE, PACKET_NS_DUAL))
+    664 us dual): settles the ambiguous product byte 0x21 for a VLP-16."""
+    periods = (PACKET_NS_SINGLE / 1000, PACKET_NS_DUAL / 1000)
+    return any(abs(toh_step_us - p) < _TIMING_TOLERANCE_US for p in periods)
+
+
+def looks_like_hdl32e_timing(toh_step_us: float) -> bool:
+    """True when a ToH step fits an HDL-32E (553 us): byte 0x21 then means what it says."""
+    return abs(toh_step_us - HDL32E_PACKET_US) < _TIMING_TOLERANCE_US
