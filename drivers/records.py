@@ -55,3 +55,71 @@ class Scan:
     def distinct(self) -> np.ndarray:
         """The points without the dual-return duplicates (each echo once)."""
         return self.points[self.points["duplicate"] == 0]
+
+
+@dataclass(frozen=True, slots=True)
+class Fix:
+    """One GNSS epoch, assembled from the sentences that share its UTC time.
+
+    Angles in degrees; `heading_deg` and `course_deg` clockwise from true north (not grid
+    north: apply the UTM convergence); heights in metres. Fields a receiver did not send
+    are None. `quality` is GGA's fix quality as sent (0 invalid, 1 GPS, 2 DGPS/SBAS,
+    4 RTK fixed, 5 RTK float, 6 dead reckoning, ...).
+    """
+
+    t_host: int  # receive time of the epoch's first sentence, ns since the Unix epoch
+    utc_ns: int | None  # the epoch's UTC, ns since the Unix epoch (None until a date is known)
+    lat: float | None
+    lon: float | None
+    altitude_msl_m: float | None
+    geoid_separation_m: float | None
+    quality: int
+    satellites: int | None
+    hdop: float | None
+    std_lat_m: float | None = None  # GST
+    std_lon_m: float | None = None
+    std_alt_m: float | None = None
+    heading_deg: float | None = None  # HDT / THS (valid modes only)
+    course_deg: float | None = None  # RMC / VTG course over ground
+    speed_mps: float | None = None
+    correction_age_s: float | None = None
+
+    @property
+    def altitude_ellipsoid_m(self) -> float | None:
+        if self.altitude_msl_m is None or self.geoid_separation_m is None:
+            return None
+        return self.altitude_msl_m + self.geoid_separation_m
+
+
+@dataclass(frozen=True, slots=True)
+class WheelSample:
+    """Cumulative wheel travel of the left and right side, as the robot reports it.
+
+    `unit` is "rad" (the Jackal MCU reports wheel rotation) or "ticks" (an encoder board);
+    the localisation turns it into metres with the calibration's `wheels` section.
+    """
+
+    t_host: int  # ns since the Unix epoch
+    left: float
+    right: float
+    unit: str
+    t_device_us: int | None = None  # the board's own clock, where it has one
+    left_velocity: float | None = None  # same unit per second, where reported
+    right_velocity: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Pose:
+    """x, y (, z) and yaw of `base_link` in `frame` at `t` (ns since the Unix epoch).
+
+    yaw: radians, counter-clockwise from the frame's x axis (east in `utm`). `covariance`
+    is the 3x3 covariance of (x, y, yaw).
+    """
+
+    t: int
+    x: float
+    y: float
+    yaw: float
+    covariance: np.ndarray
+    frame: str
+    z: float = 0.0
