@@ -1,0 +1,76 @@
+"""Settings of the localisation, each with the reason for its default."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class WheelGeometry:
+    """From calibration `wheels`: radius (m) turns the Jackal's radians into metres;
+    `track` is the effective track of the kinematics (a skid-steer Jackal slips when it
+    turns: 0.37 m x 1.5); `ticks_per_rev` converts an encoder board's ticks."""
+
+    radius: float = 0.098
+    track: float = 0.555
+    ticks_per_rev: float | None = None
+
+    def metres(self, value: float, unit: str) -> float:
+        if unit == "rad":
+            return value * self.radius
+        if unit == "ticks":
+            if not self.ticks_per_rev:
+                raise ValueError("wheel samples in ticks need calibration wheels.ticks_per_rev")
+            return value * 2 * math.pi * self.radius / self.ticks_per_rev
+        if unit == "m":
+            return value
+        raise ValueError(f"unknown wheel unit {unit!r}; expected rad, ticks or m")
+
+
+# Horizontal 1-sigma per unit of HDOP when a receiver sends no GST, by GGA quality.
+# Typical receiver accuracies: autonomous ~2.5 m, SBAS/DGPS ~0.7 m, RTK fixed ~2 cm,
+# RTK float ~0.3 m. Quality 0 (invalid) and 6 (the receiver's own dead reckoning) are
+# never used.
+DEFAULT_SIGMA_PER_HDOP = {1: 2.5, 2: 0.7, 3: 2.5, 4: 0.02, 5: 0.3, 9: 1.0}
+
+
+@dataclass(frozen=True)
+class LocalizationConfig:
+    # Wheel odometry noise. Variances grow in proportion to the motion (a random walk in
+    # distance and angle), so the model does not depend on the wheel sample rate:
+    # travel error per sqrt(metre) travelled (slip on grass and soil), heading error per
+    # sqrt(radian) turned (a skid steer scrubs when it turns) and per sqrt(metre) travelled
+    # (unequal slip of the two sides bends a straight line).
+    odom_sigma_per_sqrt_m: float = 0.05
+    odom_yaw_sigma_per_sqrt_rad: float = 0.10
+    odom_yaw_sigma_per_sqrt_m: float = math.radians(1.0)
+
+    sigma_per_hdop: dict[int, float] = field(default_factory=lambda: dict(DEFAULT_SIGMA_PER_HDOP))
+    # A GST sigma below this is not believed (multipath under canopy is not in GST).
+    min_fix_sigma_m: float = 0.01
+    # Mahalanobis gate for fixes: chi-square, 2 dof, p = 0.999.
+    fix_gate_chi2: float = 13.8
+    # After this many fixes in a row fail the gate, the filter trusts GNSS again (its
+    # own estimate has drifted, e.g. after wheel slip) and re-initialises position.
+    max_rejected_in_a_row: int = 5
+
+    # True heading (HDT/THS) standard deviation: a dual-antenna baseline of ~1 m.
+    heading_sigma_rad: float = math.radians(1.0)
+    # Course over ground is used as heading only while moving forward at least this fast
+    # and not turning faster than this; its sigma is this many m/s of velocity noise
+    # over the speed.
+    cog_min_speed_mps: float = 0.3
+    cog_max_yaw_rate: float = math.radians(10.0)
+    cog_velocity_sigma_mps: float = 0.05
+    # With no heading source at all: the heading the robot starts with (ENU, radians
+    # from east; a stock Jackal has no earth-referenced heading) and how little we trust it.
+    initial_yaw_rad: float = 0.0
+    initial_yaw_sigma_rad: float = math.pi
+
+    # Antenna lever arm: T_base_gnss from the calibration (4x4, row-major).
+    T_base_gnss: np.ndarray = field(default_factory=lambda: np.eye(4))
+    # Pose history kept for `pose_at`, seconds.
+    history_s: float = 30.0

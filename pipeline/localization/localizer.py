@@ -1,0 +1,300 @@
+"""Wheel samples and GNSS epochs in, the robot's pose in UTM out, at any recent time.
+
+Until the first good fix the robot is only known in `odom` (dead reckoning from where it
+started). The first good fix sets the datum: the UTM zone, and the filter's start.
+Heading comes from a true heading (HDT/THS) when the receiver has one, else from course
+over ground while driving straight forward, else from the configured initial heading.
+Fixes that disagree with the prediction beyond the gate are rejected; when GNSS goes
+away the pose keeps following the wheels and its uncertainty grows; when it comes back
+the first fixes pull the pose back in.
+
+Feed events in time order (the service merges its queues; replay sorts by `t_host`).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.records import Fix, Pose, WheelSample
+from pipeline.localization.config import LocalizationConfig, WheelGeometry
+from pipeline.localization.ekf import PoseFilter
+from pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw, wrap_angle
+
+# A wheel step implying more than this speed is a counter reset, not motion.
+_MAX_WHEEL_SPEED_MPS = 10.0
+
+
+@dataclass(frozen=True, slots=True)
+class FixVerdict:
+    used: bool
+    reason: str  # "datum", "accepted", "rejected", "reset", or why it was not usable
+    mahalanobis2: float | None = None
+
+
+@dataclass
+class LocalizerStats:
+    wheel_samples: int = 0
+    wheel_resets: int = 0
+    fixes: int = 0
+    fixes_used: int = 0
+    fixes_rejected: int = 0
+    fixes_unusable: int = 0
+    position_resets: int = 0
+    headings_used: int = 0
+    courses_used: int = 0
+
+
+@dataclass
+class _Motion:
+    """Recent speed and yaw rate from the wheels, to judge course over ground."""
+
+    speed: float = 0.0
+    yaw_rate: float = 0.0
+
+
+@dataclass
+class _History:
+    times: deque = field(default_factory=deque)
+    poses: deque = field(default_factory=deque)
+
+
+class Localizer:
+    def __init__(
+        self, config: LocalizationConfig | None = None, wheels: WheelGeometry | None = None
+    ):
+        self.config = config or LocalizationConfig()
+        self.wheels = wheels or WheelGeometry()
+        self.stats = LocalizerStats()
+        self.grid: UtmGrid | None = None
+        self._filter: PoseFilter | None = None
+        self._odom = np.zeros(3)  # dead-reckoned x, y, yaw in `odom`
+        self._last_wheels: WheelSample | None = None
+        self._motion = _Motion()
+        self._rejected_in_a_row = 0
+        self._t = 0
+        self._odom_history = _History()
+        self._utm_history = _History()
+        lever = np.asarray(self.config.T_base_gnss, dtype=float).reshape(4, 4)[:3, 3]
+        self._lever_arm = lever[:2]
+
+    # ---- inputs ---------------------------------------------------------------------------
+
+    def add_wheels(self, sample: WheelSample) -> None:
+        self.stats.wheel_samples += 1
+        previous, self._last_wheels = self._last_wheels, sample
+        if previous is None:
+            self._record(sample.t_host)
+            return
+        dt = (sample.t_host - previous.t_host) / 1e9
+        left = self.wheels.metres(sample.left - previous.left, sample.unit)
+        right = self.wheels.metres(sample.right - previous.right, sample.unit)
+        if dt <= 0 or max(abs(left), abs(right)) > _MAX_WHEEL_SPEED_MPS * max(dt, 0.02):
+            self.stats.wheel_resets += 1  # counter reset or a clock step: no motion known
+            return
+        distance = (left + right) / 2
+        turn = (right - left) / self.wheels.track
+        self._motion = _Motion(speed=distance / dt, yaw_rate=turn / dt)
+
+        yaw = self._odom[2] + turn / 2
+        self._odom = np.array(
+            [
+                self._odom[0] + distance * math.cos(yaw),
+                self._odom[1] + distance * math.sin(yaw),
+                wrap_angle(self._odom[2] + turn),
+            ]
+        )
+        if self._filter is not None:
+            c = self.config
+            sigma_distance = c.odom_sigma_per_sqrt_m * math.sqrt(abs(distance))
+            sigma_turn = math.sqrt(
+                c.odom_yaw_sigma_per_sqrt_rad**2 * abs(turn)
+                + c.odom_yaw_sigma_per_sqrt_m**2 * abs(distance)
+            )
+            self._filter.predict(distance, turn, sigma_distance, sigma_turn)
+        self._record(sample.t_host)
+
+    def add_fix(self, fix: Fix) -> FixVerdict:
+        self.stats.fixes += 1
+        sigma = self._fix_sigma(fix)
+        if fix.lat is None or fix.lon is None or sigma is None:
+            self.stats.fixes_unusable += 1
+            return FixVerdict(False, "no usable position (quality or fields)")
+        if self.grid is None:
+            self.grid = UtmGrid.for_position(fix.lat, fix.lon)
+        easting, northing = self.grid.forward(fix.lat, fix.lon)
+        convergence = self.grid.convergence_rad(fix.lat, fix.lon)
+        covariance = np.diag([sigma[0] ** 2, sigma[1] ** 2])
+        heading = self._heading_measurement(fix, convergence)
+
+        if self._filter is None:
+            verdict = self._start(fix, easting, northing, covariance, heading)
+        else:
+            verdict = self._update(easting, northing, covariance)
+            if heading is not None and verdict.used:
+                result = self._filter.update_yaw(heading[0], heading[1], self.config.fix_gate_chi2)
+                self.stats.headings_used += int(result.applied and heading[2] == "heading")
+                self.stats.courses_used += int(result.applied and heading[2] == "course")
+        self._record(fix.t_host)
+        return verdict
+
+    # ---- outputs --------------------------------------------------------------------------
+
+    def pose(self) -> Pose | None:
+        """The latest pose: in `utm` once there is a datum, else in `odom`."""
+        if self._filter is not None:
+            x, y, yaw = self._filter.state
+            return Pose(self._t, float(x), float(y), float(yaw), self._filter.covariance, "utm")
+        if self._last_wheels is None:
+            return None
+        x, y, yaw = self._odom
+        return Pose(self._t, float(x), float(y), float(yaw), np.zeros((3, 3)), "odom")
+
+    def pose_at(self, t: int, frame: str = "utm") -> Pose | None:
+        """The pose at time `t` (ns), interpolated between the poses around it; None
+        outside the kept history (`history_s`) or before the datum (for `utm`)."""
+        history = self._utm_history if frame == "utm" else self._odom_history
+        times = history.times
+        if not times or t < times[0] or t > times[-1]:
+            return None
+        i = bisect.bisect_left(times, t)
+        after = history.poses[i]
+        if times[i] == t or i == 0:
+            return Pose(t, *after[:3], after[3], frame)
+        before = history.poses[i - 1]
+        w = (t - times[i - 1]) / (times[i] - times[i - 1])
+        yaw = wrap_angle(before[2] + w * wrap_angle(after[2] - before[2]))
+        x = before[0] + w * (after[0] - before[0])
+        y = before[1] + w * (after[1] - before[1])
+        return Pose(t, x, y, yaw, after[3] if w >= 0.5 else before[3], frame)
+
+    def utm_from_odom(self, t: int | None = None) -> np.ndarray | None:
+        """The 3x3 homogeneous 2-D transform taking `odom` points to `utm` at time `t`
+        (default: now), to georeference what was mapped before the datum or through an
+        outage. Odometry drifts, so take it at the first time with a `utm` pose after
+        the thing was seen (`first_utm_time`)."""
+        if t is None:
+            utm, odom = self.pose(), self.pose_at(self._t, frame="odom")
+        else:
+            utm, odom = self.pose_at(t), self.pose_at(t, frame="odom")
+        if utm is None or odom is None or utm.frame != "utm":
+            return None
+        return _se2(utm.x, utm.y, utm.yaw) @ np.linalg.inv(_se2(odom.x, odom.y, odom.yaw))
+
+    @property
+    def first_utm_time(self) -> int | None:
+        """The earliest time still in the history with a pose in `utm`."""
+        return self._utm_history.times[0] if self._utm_history.times else None
+
+    # ---- internals ------------------------------------------------------------------------
+
+    def _fix_sigma(self, fix: Fix) -> tuple[float, float] | None:
+        """1-sigma (east, north) in metres: GST when sent, else HDOP x a per-quality sigma."""
+        per_hdop = self.config.sigma_per_hdop.get(fix.quality)
+        if per_hdop is None:
+            return None
+        floor = self.config.min_fix_sigma_m
+        if fix.std_lat_m is not None and fix.std_lon_m is not None:
+            return max(fix.std_lon_m, floor), max(fix.std_lat_m, floor)
+        hdop = fix.hdop if fix.hdop is not None else 1.0
+        sigma = max(per_hdop * hdop, floor)
+        return sigma, sigma
+
+    def _heading_measurement(self, fix: Fix, convergence: float):
+        """(grid yaw, sigma, kind) from a true heading, or from course over ground while
+        driving straight forward; None otherwise."""
+        c = self.config
+        if fix.heading_deg is not None:
+            return (
+                true_heading_to_grid_yaw(fix.heading_deg, convergence),
+                c.heading_sigma_rad,
+                "heading",
+            )
+        moving = (
+            fix.course_deg is not None
+            and fix.speed_mps is not None
+            and fix.speed_mps >= c.cog_min_speed_mps
+            and self._motion.speed >= c.cog_min_speed_mps
+            and abs(self._motion.yaw_rate) <= c.cog_max_yaw_rate
+        )
+        if moving:
+            sigma = max(c.cog_velocity_sigma_mps / fix.speed_mps, math.radians(0.5))
+            return true_heading_to_grid_yaw(fix.course_deg, convergence), sigma, "course"
+        return None
+
+    def _start(self, fix, easting, northing, covariance, heading) -> FixVerdict:
+        c = self.config
+        yaw, yaw_sigma = (
+            (heading[0], heading[1]) if heading else (c.initial_yaw_rad, c.initial_yaw_sigma_rad)
+        )
+        base = np.array([easting, northing]) - _rotate(self._lever_arm, yaw)
+        p = np.zeros((3, 3))
+        p[:2, :2] = covariance
+        p[2, 2] = yaw_sigma**2
+        self._filter = PoseFilter(base[0], base[1], yaw, p)
+        self.stats.fixes_used += 1
+        return FixVerdict(True, "datum")
+
+    def _update(self, easting, northing, covariance) -> FixVerdict:
+        c = self.config
+        result = self._filter.update_antenna(
+            np.array([easting, northing]), covariance, self._lever_arm, c.fix_gate_chi2
+        )
+        if result.applied:
+            self._rejected_in_a_row = 0
+            self.stats.fixes_used += 1
+            return FixVerdict(True, "accepted", result.mahalanobis2)
+        self._rejected_in_a_row += 1
+        if self._rejected_in_a_row < c.max_rejected_in_a_row:
+            self.stats.fixes_rejected += 1
+            return FixVerdict(False, "rejected", result.mahalanobis2)
+        # Several good fixes in a row disagree with us: our dead reckoning is what drifted.
+        yaw = self._filter.state[2]
+        base = np.array([easting, northing]) - _rotate(self._lever_arm, yaw)
+        self._filter.reset_position(base[0], base[1], covariance)
+        self._rejected_in_a_row = 0
+        self.stats.position_resets += 1
+        self.stats.fixes_used += 1
+        return FixVerdict(True, "reset", result.mahalanobis2)
+
+    def _record(self, t: int) -> None:
+        self._t = max(self._t, t)
+        _append(
+            self._odom_history,
+            self._t,
+            (*map(float, self._odom), np.zeros((3, 3))),
+            self.config.history_s,
+        )
+        if self._filter is not None:
+            x, y, yaw = self._filter.state
+            _append(
+                self._utm_history,
+                self._t,
+                (float(x), float(y), float(yaw), self._filter.covariance),
+                self.config.history_s,
+            )
+
+
+def _append(history: _History, t: int, pose: tuple, keep_s: float) -> None:
+    if history.times and history.times[-1] == t:
+        history.poses[-1] = pose  # several inputs at one instant: keep the last state
+        return
+    history.times.append(t)
+    history.poses.append(pose)
+    while history.times and t - history.times[0] > keep_s * 1e9:
+        history.times.popleft()
+        history.poses.popleft()
+
+
+def _rotate(vector: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]])
+
+
+def _se2(x: float, y: float, yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
