@@ -7,27 +7,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers.calibration import WheelGeometry
 
-@dataclass(frozen=True)
-class WheelGeometry:
-    """From calibration `wheels`: radius (m) turns the Jackal's radians into metres;
-    `track` is the effective track of the kinematics (a skid-steer Jackal slips when it
-    turns: 0.37 m x 1.5); `ticks_per_rev` converts an encoder board's ticks."""
-
-    radius: float = 0.098
-    track: float = 0.555
-    ticks_per_rev: float | None = None
-
-    def metres(self, value: float, unit: str) -> float:
-        if unit == "rad":
-            return value * self.radius
-        if unit == "ticks":
-            if not self.ticks_per_rev:
-                raise ValueError("wheel samples in ticks need calibration wheels.ticks_per_rev")
-            return value * 2 * math.pi * self.radius / self.ticks_per_rev
-        if unit == "m":
-            return value
-        raise ValueError(f"unknown wheel unit {unit!r}; expected rad, ticks or m")
+__all__ = ["DEFAULT_SIGMA_PER_HDOP", "LocalizationConfig", "WheelGeometry"]
 
 
 # Horizontal 1-sigma per unit of HDOP when a receiver sends no GST, by GGA quality.
