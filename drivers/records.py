@@ -123,3 +123,30 @@ class Pose:
     covariance: np.ndarray
     frame: str
     z: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One camera image: the JPEG bytes as the camera sent them, decoded only on demand.
+
+    `t_capture` is the exposure start the driver reports (the V4L2 buffer timestamp turned
+    into ns since the Unix epoch) where known, else `t_host`.
+    """
+
+    jpeg: bytes
+    t_host: int
+    t_capture: int
+    sequence: int = 0
+
+    def decode(self) -> np.ndarray:
+        """The image as an OpenCV BGR uint8 array. Raises ParseError for a corrupt JPEG."""
+        import cv2
+
+        from treetraits.errors import ParseError
+
+        image = cv2.imdecode(np.frombuffer(self.jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
+        if image is None:
+            raise ParseError(
+                f"frame {self.sequence}: not a decodable JPEG ({len(self.jpeg)} bytes)"
+            )
+        return image
