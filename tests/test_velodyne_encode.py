@@ -37,7 +37,7 @@ def test_bad_shapes_and_values_are_refused():
     grid = np.zeros((2, 12, 32), dtype=np.uint16)
     with pytest.raises(ValueError, match="azimuth must be"):
         encode_packets(azimuth[:, :11], grid, grid, np.zeros(2))
-    with pytest.raises(ValueError, match="0..35999"):
+    with pytest.raises(ValueError, match=r"0\.\.35999"):
         encode_packets(azimuth + 36000, grid, grid, np.zeros(2))
     with pytest.raises(ValueError, match="return mode"):
         encode_packets(azimuth, grid, grid, np.zeros(2), return_mode=0x40)
