@@ -56,7 +56,7 @@ class Scene:
         hits = self._scene.cast_rays(o3d.core.Tensor(rays))
         distance = hits["t_hit"].numpy()
         geometry = hits["geometry_ids"].numpy().astype(np.int64)
-        labels = np.asarray(self._labels + [-1])
+        labels = np.asarray([*self._labels, -1])
         hit = np.isfinite(distance)
         return distance, np.where(hit, labels[np.where(hit, geometry, -1)], -1)
 
