@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from treetraits import __version__
-from treetraits.cli import lidar
+from treetraits.cli import lidar, nmea
 from treetraits.errors import TreetraitsError
 
 
@@ -25,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"treetraits {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     lidar.register(commands)
+    nmea.register(commands)
     return parser
 
 
