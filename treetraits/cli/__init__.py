@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from treetraits import __version__
-from treetraits.cli import lidar, nmea
+from treetraits.cli import camera, lidar, nmea
 from treetraits.errors import TreetraitsError
 
 
@@ -26,6 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     lidar.register(commands)
     nmea.register(commands)
+    camera.register(commands)
     return parser
 
 
