@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from treetraits import __version__
-from treetraits.cli import camera, lidar, nmea
+from treetraits.cli import calibrate, camera, fuse, lidar, nmea
 from treetraits.errors import TreetraitsError
 
 
@@ -27,6 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
     lidar.register(commands)
     nmea.register(commands)
     camera.register(commands)
+    calibrate.register(commands)
+    fuse.register(commands)
     return parser
 
 

@@ -1,0 +1,190 @@
+"""One scan with one camera frame: pick the frame, decode it, NDVI, per-point NDVI.
+
+Never raises for bad data: a missing frame, a frame too far in time, a corrupt JPEG or a
+frame of the wrong size gives every point NaN with status NO_FRAME and the reason in
+`FusedScan.reason`, for the caller to count. Also the overlay picture of the paper's
+Fig. 2b (NDVI frame + LiDAR points coloured by height), as pure array functions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.calibration import Calibration
+from drivers.records import Frame, Scan
+from pipeline.ndvi import ndvi_image
+from pipeline.projection import (
+    DEFAULT_MAX_SKEW_NS,
+    OcclusionRule,
+    PointNdvi,
+    PointStatus,
+    Projection,
+    nearest_frame,
+    point_ndvi,
+    project_points,
+    scan_mid_time,
+)
+from treetraits.errors import CalibrationError, ParseError
+
+# Frame-level reasons, each counted by the caller.
+FRAME_REASONS = ("ok", "no_frame", "skew", "corrupt_jpeg", "size_mismatch")
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    max_skew_ns: int = DEFAULT_MAX_SKEW_NS
+    occlusion: OcclusionRule = field(default_factory=OcclusionRule)
+
+
+@dataclass(frozen=True)
+class FusedScan:
+    """Per-point NDVI of one scan and how it was obtained."""
+
+    points: PointNdvi
+    reason: str  # one of FRAME_REASONS
+    detail: str  # a sentence for a log line
+    frame: Frame | None  # the frame used (or the refused one, for corrupt/size_mismatch)
+    skew_ns: int | None  # frame time - scan middle, None without frames
+    ndvi_frame: np.ndarray | None = None
+    projection: Projection | None = None
+
+    @property
+    def ndvi(self) -> np.ndarray:
+        return self.points.ndvi
+
+    def counts(self) -> dict[str, int]:
+        return self.points.counts()
+
+
+def _no_frame(n: int, reason: str, detail: str, frame=None, skew=None) -> FusedScan:
+    status = np.full(n, PointStatus.NO_FRAME, dtype=np.uint8)
+    points = PointNdvi(np.full(n, np.nan, dtype=np.float32), status)
+    return FusedScan(points, reason, detail, frame, skew)
+
+
+def fuse_scan(
+    scan: Scan,
+    frames: Sequence[Frame],
+    calibration: Calibration,
+    config: FusionConfig | None = None,
+) -> FusedScan:
+    """NDVI for every point of `scan` from the frame nearest its middle (by `t_capture`).
+
+    Raises CalibrationError only for a calibration without a camera; data problems come
+    back as a `reason`.
+    """
+    config = FusionConfig() if config is None else config
+    camera, extrinsic = calibration.camera, calibration.T_camera_lidar
+    if camera is None or extrinsic is None:
+        raise CalibrationError(
+            f"{calibration.source}: NDVI fusion needs camera and T_camera_lidar in the calibration"
+        )
+    n = len(scan.points)
+    t_mid = scan_mid_time(scan)
+    match = nearest_frame([f.t_capture for f in frames], t_mid, config.max_skew_ns)
+    if match.index is None:
+        if match.reason == "no_frame":
+            return _no_frame(n, "no_frame", "no camera frame")
+        return _no_frame(
+            n,
+            "skew",
+            f"nearest frame {match.skew_ns / 1e6:+.1f} ms from the scan middle "
+            f"(limit {config.max_skew_ns / 1e6:.0f} ms)",
+            skew=match.skew_ns,
+        )
+    frame = frames[match.index]
+    try:
+        image = frame.decode()
+    except ParseError as exc:
+        return _no_frame(n, "corrupt_jpeg", str(exc), frame, match.skew_ns)
+    if image.shape[:2] != (camera.height, camera.width):
+        return _no_frame(
+            n,
+            "size_mismatch",
+            f"frame {frame.sequence} is {image.shape[1]}x{image.shape[0]}, the calibration "
+            f"is for {camera.width}x{camera.height} (intrinsics are per video mode)",
+            frame,
+            match.skew_ns,
+        )
+    ndvi_frame = ndvi_image(image, camera.channels, calibration.reflectance)
+    projection = project_points(scan.points, camera, extrinsic)
+    points = point_ndvi(
+        scan.points, ndvi_frame, camera, extrinsic, config.occlusion, projection=projection
+    )
+    return FusedScan(
+        points,
+        "ok",
+        f"frame {frame.sequence} at {match.skew_ns / 1e6:+.1f} ms",
+        frame,
+        match.skew_ns,
+        ndvi_frame,
+        projection,
+    )
+
+
+# --- the overlay picture ------------------------------------------------------------------
+
+# NDVI -1 .. +1 as ColorBrewer RdYlGn (5 classes), BGR: red = bare/dead, green = vegetation.
+_RDYLGN_BGR = np.array(
+    [[28, 25, 215], [97, 174, 253], [191, 255, 255], [106, 217, 166], [65, 150, 26]], float
+)
+NDVI_LUT = (
+    np.stack(
+        [np.interp(np.linspace(0, 4, 256), np.arange(5), _RDYLGN_BGR[:, c]) for c in range(3)], 1
+    )
+    .round()
+    .astype(np.uint8)
+)
+NAN_BGR = (64, 64, 64)  # no NDVI: dark grey
+
+
+def colorize_ndvi(ndvi_frame: np.ndarray) -> np.ndarray:
+    """BGR uint8 picture of an NDVI frame: RdYlGn over [-1, 1], NaN dark grey."""
+    finite = np.isfinite(ndvi_frame)
+    index = np.zeros(ndvi_frame.shape, dtype=np.uint8)
+    scaled = (np.clip(ndvi_frame[finite], -1.0, 1.0) + 1.0) * 127.5
+    index[finite] = np.round(scaled).astype(np.uint8)
+    out = NDVI_LUT[index]
+    out[~finite] = NAN_BGR
+    return out
+
+
+def colorize_mask(mask: np.ndarray) -> np.ndarray:
+    """The paper's binary NDVI frame: vegetation white, the rest black."""
+    out = np.zeros((*mask.shape, 3), dtype=np.uint8)
+    out[mask] = 255
+    return out
+
+
+def height_colours(values: np.ndarray, low: float, high: float) -> np.ndarray:
+    """M x 3 BGR uint8 for heights: OpenCV's COOL map (cyan low .. magenta high).
+
+    Its blue channel is always 255 and green + red = 255, so a dot's colour is never one
+    of the backgrounds' (RdYlGn's blue stays <= 191; grey, black, white): no dot vanishes.
+    """
+    import cv2
+
+    span = high - low if high > low else 1.0
+    index = np.clip((values - low) / span * 255.0, 0, 255).round().astype(np.uint8)
+    return cv2.applyColorMap(index.reshape(-1, 1), cv2.COLORMAP_COOL).reshape(-1, 3)
+
+
+def draw_points(
+    background: np.ndarray,
+    pixel: np.ndarray,
+    depth: np.ndarray,
+    colours: np.ndarray,
+    radius: int = 2,
+) -> np.ndarray:
+    """A copy of `background` with a filled dot per point, far points first so the
+    nearest is on top."""
+    import cv2
+
+    out = background.copy()
+    for i in np.argsort(-depth, kind="stable"):
+        colour = tuple(int(c) for c in colours[i])
+        cv2.circle(out, (int(pixel[i, 0]), int(pixel[i, 1])), radius, colour, -1, cv2.LINE_8)
+    return out
