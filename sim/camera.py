@@ -63,7 +63,7 @@ class Survey3Emulator:
         world_from_camera = world_from_base @ self._base_from_camera
         directions = self._rays_camera @ world_from_camera[:3, :3].T
         origins = np.broadcast_to(world_from_camera[:3, 3], directions.shape)
-        distance, label = self.scene.cast(np.ascontiguousarray(origins), directions)
+        _, label = self.scene.cast(np.ascontiguousarray(origins), directions)
         reflectance = np.empty((len(label), 3))
         reflectance[label == 0] = SOIL
         reflectance[label > 0] = FOLIAGE
