@@ -150,3 +150,28 @@ class Frame:
                 f"frame {self.sequence}: not a decodable JPEG ({len(self.jpeg)} bytes)"
             )
         return image
+
+
+@dataclass(frozen=True, slots=True)
+class Tree:
+    """One mapped tree, as written to the outputs (trees.csv columns, ARCHITECTURE.md).
+
+    Position in the UTM zone of the run (`utm_zone` like `11N`) and in WGS84; None while
+    the tree is only known in `odom` (seen before the first GNSS fix or in an outage).
+    Times are ns since the Unix epoch.
+    """
+
+    tree_id: str
+    easting: float | None
+    northing: float | None
+    utm_zone: str | None
+    lat: float | None
+    lon: float | None
+    width_m: float
+    height_m: float
+    ndvi: float | None
+    observations: int
+    first_seen: int
+    last_seen: int
+    field_id: str | None = None
+    row: str | None = None
