@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from treetraits import __version__
-from treetraits.cli import calibrate, camera, fuse, lidar, nmea
+from treetraits.cli import calibrate, camera, fuse, lidar, nmea, sim
 from treetraits.errors import TreetraitsError
 
 
@@ -29,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     camera.register(commands)
     calibrate.register(commands)
     fuse.register(commands)
+    sim.register(commands)
     return parser
 
 

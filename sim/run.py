@@ -1,0 +1,238 @@
+"""One simulated survey: an orchard, a path, and every sensor's bytes written to a
+recording (format v1) exactly as the real sensors would send them, with the ground truth
+and the field map beside it.
+
+Clocks: the run starts at a fixed UTC time (so a seed gives the same recording); each
+message's `log_time` is when the host would receive it (sensor time + a small latency).
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from drivers import recording as rec
+from drivers.calibration import Calibration, load_calibration
+from sim.camera import CameraSettings, Survey3Emulator
+from sim.gnss import GnssEmulator, GnssSettings, UtmZone
+from sim.lidar import LidarSettings, Scene, Vlp16Emulator
+from sim.orchard import Ground, TreeTruth, grid_orchard, ground_mesh, measure_truth, tree_mesh
+from sim.paths import DriveSettings, drive, trajectory_function, waypoints
+from sim.wheels import JackalMcuEmulator, WheelSettings
+
+DEFAULT_CALIBRATION = Path(__file__).parent / "data" / "citrusfarm_calibration_v1.json"
+START_UTC = dt.datetime(2026, 5, 12, 17, 0, 0, tzinfo=dt.UTC)
+# Where the grove is: near Riverside, California (UTM 11N), the paper's home.
+ORIGIN_UTM = (467_000.0, 3_758_000.0)
+UTM_ZONE = 11
+LATENCY_NS = {"lidar": 300_000, "camera": 30_000_000, "gnss": 60_000_000, "wheels": 2_000_000}
+
+
+@dataclass(frozen=True)
+class SurveySettings:
+    path: str = "straight"
+    width: float = 5.0  # column spacing (m): the paper's "5x5" is 5 m x 5 m
+    length: float = 5.0  # row spacing along the path (m)
+    columns: int = 2
+    rows: int = 3
+    seed: int = 0
+    slope: float = 0.0  # ground slope along the path (rise over run)
+    goal: float = 23.0  # m ahead of the start, as in the paper
+    camera_rate_hz: float = 10.0
+    camera: CameraSettings = field(default_factory=lambda: CameraSettings(render_scale=0.25))
+    lidar: LidarSettings = field(default_factory=LidarSettings)
+    gnss: GnssSettings = field(default_factory=GnssSettings)
+    wheels: WheelSettings = field(default_factory=WheelSettings)
+    drive: DriveSettings = field(default_factory=DriveSettings)
+
+
+@dataclass(frozen=True)
+class SurveyResult:
+    recording: Path
+    truth_csv: Path
+    field_map: Path
+    trees: list[TreeTruth]
+    duration_s: float
+    counts: dict[str, int]
+
+
+def build_orchard(settings: SurveySettings, rng: np.random.Generator):
+    """The scene and the truth: columns at y = +-width/2, rows from x = length on."""
+    ground = Ground(slope_x=settings.slope)
+    specs = grid_orchard(settings.columns, settings.rows, settings.width, settings.length, rng)
+    # grid_orchard lays rows along +x from y = 0; centre the columns on the path.
+    offset_y = -(settings.columns - 1) * settings.width / 2
+    # Table I names the rows along the path front, middle and back.
+    names = ["front", "middle", "back"] if settings.rows == 3 else None
+    specs = [
+        replace(
+            spec,
+            tree_id=f"T{i + 1}",
+            row=names[i % settings.rows] if names else str(i % settings.rows + 1),
+            x=spec.x + settings.length,
+            y=spec.y + offset_y,
+        )
+        for i, spec in enumerate(specs)
+    ]
+    scene = Scene()
+    scene.add(*ground_mesh(ground, (-40, 60), (-40, 40)), label=0)
+    truths = []
+    for i, spec in enumerate(specs):
+        vertices, triangles = tree_mesh(spec, ground, rng)
+        scene.add(vertices, triangles, label=i + 1)
+        truths.append(measure_truth(spec, vertices, ground))
+    return scene, truths, ground
+
+
+def simulate_survey(
+    out: Path,
+    settings: SurveySettings | None = None,
+    calibration: Calibration | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> SurveyResult:
+    """Write REC.mcap plus `<stem>.truth.csv` and `<stem>.field_map.geojson` beside it."""
+    s = settings or SurveySettings()
+    calibration = calibration or load_calibration(DEFAULT_CALIBRATION)
+    rng = np.random.default_rng(s.seed)
+    scene, truths, ground = build_orchard(s, rng)
+    poses = drive(waypoints(s.path, s.width, s.length, s.goal), s.drive)
+    # The twin's ground may slope: the robot rides on it.
+    t0_ns = int(START_UTC.timestamp() * 1e9)
+    duration_s = float(poses[-1, 0])
+    trajectory = trajectory_function(poses, t0_ns)
+
+    def pose_at(t_ns):
+        x, y, _, yaw = trajectory(np.asarray(t_ns))
+        return x, y, ground.height(x, y), yaw
+
+    zone = UtmZone(UTM_ZONE)
+    lidar = Vlp16Emulator(scene, calibration.T_base_lidar, s.lidar, rng)
+    camera = Survey3Emulator(scene, calibration, s.camera, rng) if calibration.camera else None
+    gnss = GnssEmulator(zone, ORIGIN_UTM, calibration.T_base_gnss, s.gnss, rng)
+    mcu = JackalMcuEmulator(calibration.wheels, s.wheels, rng)
+
+    messages: list[tuple[int, str, bytes, int]] = []  # (log_time, topic, data, publish_time)
+    t_end = t0_ns + int(duration_s * 1e9)
+    for t_device, payload in lidar.packets(pose_at, t0_ns, t_end):
+        messages.append((t_device + LATENCY_NS["lidar"], rec.LIDAR_PACKETS, payload, t_device))
+    if progress:
+        progress(0.5)
+    if camera is not None:
+        for t in np.arange(t0_ns, t_end, int(1e9 / s.camera_rate_hz)):
+            x, y, z, yaw = (float(v) for v in pose_at(t))
+            messages.append(
+                (
+                    int(t) + LATENCY_NS["camera"],
+                    rec.CAMERA_JPEG,
+                    camera.jpeg(_world_from_base(x, y, z, yaw)),
+                    int(t),
+                )
+            )
+    if progress:
+        progress(0.8)
+    step = int(1e9 / s.gnss.rate_hz)
+    previous = None
+    for t in np.arange(t0_ns, t_end, step):
+        x, y, _, yaw = (float(v) for v in pose_at(t))
+        speed = (
+            0.0 if previous is None else math.hypot(x - previous[0], y - previous[1]) / (step / 1e9)
+        )
+        previous = (x, y)
+        utc = START_UTC + dt.timedelta(microseconds=(int(t) - t0_ns) // 1000)
+        for sentence in gnss.epoch((int(t) - t0_ns) / 1e9, utc, x, y, yaw, speed):
+            messages.append((int(t) + LATENCY_NS["gnss"], rec.GNSS_NMEA, sentence, int(t)))
+    messages.append((t0_ns, rec.WHEELS_JACKAL, mcu.handshake(), t0_ns))
+    for t in np.arange(t0_ns, t_end, int(1e9 / s.wheels.rate_hz)):
+        x, y, _, yaw = (float(v) for v in pose_at(t))
+        messages.append(
+            (
+                int(t) + LATENCY_NS["wheels"],
+                rec.WHEELS_JACKAL,
+                mcu.feedback(int(t), x, y, yaw),
+                int(t),
+            )
+        )
+    messages.sort(key=lambda m: (m[0], m[1]))
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    truth_csv = out.with_suffix(".truth.csv")
+    field_map = out.with_suffix(".field_map.geojson")
+    _write_truth(truth_csv, truths, zone)
+    geojson = _field_map(truths, zone)
+    field_map.write_text(json.dumps(geojson, indent=1))
+    counts: dict[str, int] = {}
+    with rec.RecordingWriter(out, calibration=calibration.to_json(), overwrite=True) as writer:
+        for log_time, topic, data, publish_time in messages:
+            writer.write(topic, data, log_time=log_time, publish_time=publish_time)
+            counts[topic] = counts.get(topic, 0) + 1
+        writer.attach(rec.FIELD_MAP_NAME, json.dumps(geojson).encode(), rec.FIELD_MAP_MEDIA_TYPE)
+    if progress:
+        progress(1.0)
+    return SurveyResult(out, truth_csv, field_map, truths, duration_s, counts)
+
+
+def _world_from_base(x: float, y: float, z: float, yaw: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    pose[:3, 3] = (x, y, z)
+    return pose
+
+
+def _write_truth(path: Path, truths: list[TreeTruth], zone: UtmZone) -> None:
+    with open(path, "w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(
+            [
+                "tree_id",
+                "row",
+                "x",
+                "y",
+                "easting",
+                "northing",
+                "utm_zone",
+                "lat",
+                "lon",
+                "width_m",
+                "height_m",
+            ]
+        )
+        for t in truths:
+            easting, northing = ORIGIN_UTM[0] + t.x, ORIGIN_UTM[1] + t.y
+            lat, lon = zone.inverse(easting, northing)
+            out.writerow(
+                [
+                    t.tree_id,
+                    t.row,
+                    f"{t.x:.3f}",
+                    f"{t.y:.3f}",
+                    f"{easting:.3f}",
+                    f"{northing:.3f}",
+                    zone.name,
+                    f"{lat:.9f}",
+                    f"{lon:.9f}",
+                    f"{t.width:.3f}",
+                    f"{t.height:.3f}",
+                ]
+            )
+
+
+def _field_map(truths: list[TreeTruth], zone: UtmZone) -> dict:
+    features = []
+    for t in truths:
+        lat, lon = zone.inverse(ORIGIN_UTM[0] + t.x, ORIGIN_UTM[1] + t.y)
+        features.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "Point", "coordinates": [lon, lat]},
+                "properties": {"id": t.tree_id, "row": t.row},
+            }
+        )
+    return {"type": "FeatureCollection", "features": features}

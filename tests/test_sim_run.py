@@ -1,0 +1,128 @@
+"""A simulated survey end to end: every channel of the recording decodes through the real
+drivers, and the pose fused from its GNSS and wheel bytes follows the true path."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from drivers import recording as rec
+from drivers.gnss.epochs import EpochAssembler
+from drivers.gnss.sentences import decode
+from drivers.gnss.sources import open_gnss_source
+from drivers.records import Scan, WheelSample
+from drivers.velodyne.reader import LidarReader
+from drivers.velodyne.sources import open_source
+from firmware_bridge.jackal.session import decode_stream
+from pipeline.localization import LocalizationConfig, Localizer
+from sim.gnss import GnssSettings
+from sim.paths import drive, waypoints
+from sim.run import ORIGIN_UTM, SurveySettings, simulate_survey
+from treetraits.cli import main
+
+SETTINGS = SurveySettings(
+    path="straight", goal=8.0, seed=5, gnss=dataclasses.replace(GnssSettings(), dual_antenna=True)
+)
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    return simulate_survey(tmp_path_factory.mktemp("sim") / "survey.mcap", SETTINGS)
+
+
+def test_every_channel_is_there_at_its_rate(survey):
+    seconds = survey.duration_s
+    assert seconds == pytest.approx(16.0, abs=0.5)
+    assert survey.counts[rec.LIDAR_PACKETS] == pytest.approx(754 * seconds, rel=0.01)
+    assert survey.counts[rec.CAMERA_JPEG] == pytest.approx(10 * seconds, abs=1)
+    assert survey.counts[rec.WHEELS_JACKAL] == pytest.approx(50 * seconds, abs=2)
+    # GGA + RMC + GST + HDT at 10 Hz.
+    assert survey.counts[rec.GNSS_NMEA] == pytest.approx(40 * seconds, abs=4)
+
+
+def test_lidar_decodes_without_loss_at_10_hz(survey):
+    reader = LidarReader(open_source(survey.recording))
+    scans = [s for s in reader if isinstance(s, Scan)]
+    assert reader.batcher.stats.lost == 0 and reader.batcher.stats.malformed == 0
+    assert len(scans) == pytest.approx(10 * survey.duration_s, abs=2)
+    assert all(s.model == "VLP-16" for s in scans)
+
+
+def test_truth_and_field_map_beside_the_recording(survey):
+    with open(survey.truth_csv) as f:
+        rows = list(csv.DictReader(f))
+    assert [r["row"] for r in rows] == ["front", "middle", "back"] * 2
+    assert all(2.5 < float(r["width_m"]) < 3.0 and 2.4 < float(r["height_m"]) < 3.0 for r in rows)
+    field_map = json.loads(survey.field_map.read_text())
+    assert [f["properties"]["id"] for f in field_map["features"]] == [r["tree_id"] for r in rows]
+    with rec.read_recording(survey.recording) as recording:
+        assert recording.metadata.format_version == "1"
+        assert "camera" in recording.metadata.calibration
+        assert json.loads(recording.attachments[rec.FIELD_MAP_NAME].data) == field_map
+
+
+def test_gnss_and_wheels_fuse_back_onto_the_true_path(survey):
+    source = open_gnss_source(survey.recording)
+    assembler = EpochAssembler()
+    fixes = []
+    for sentence in source:
+        record = decode(sentence)
+        if record is not None and (fix := assembler.push(record)) is not None:
+            fixes.append(fix)
+    if (fix := assembler.flush()) is not None:
+        fixes.append(fix)
+    with rec.read_recording(survey.recording, topics=[rec.WHEELS_JACKAL]) as recording:
+        chunks = [(m.log_time, m.data) for m in recording]
+    wheels = [r for r in decode_stream(chunks) if isinstance(r, WheelSample)]
+    assert len(wheels) == pytest.approx(50 * survey.duration_s, abs=2)
+    assert all(f.quality == 4 and f.heading_deg is not None for f in fixes)
+
+    with rec.read_recording(survey.recording, topics=[]) as recording:
+        calibration = recording.metadata.calibration
+    t_base_gnss = np.asarray(calibration["T_base_gnss"]).reshape(4, 4)
+    localizer = Localizer(LocalizationConfig(T_base_gnss=t_base_gnss, history_s=1e4))
+    events = sorted([*fixes, *wheels], key=lambda e: e.t_host)
+    for event in events:
+        if isinstance(event, WheelSample):
+            localizer.add_wheels(event)
+        else:
+            localizer.add_fix(event)
+    truth = drive(waypoints("straight", SETTINGS.width, SETTINGS.length, SETTINGS.goal))
+    t0 = wheels[0].t_host - 2_000_000  # the wheels' latency in the twin
+    errors = []
+    for t, x, y, _yaw in truth[200::50]:  # from 2 s on, every 0.5 s
+        pose = localizer.pose_at(t0 + int(t * 1e9))
+        if pose is not None:
+            errors.append(math.hypot(pose.x - ORIGIN_UTM[0] - x, pose.y - ORIGIN_UTM[1] - y))
+    assert len(errors) > 20
+    assert max(errors) < 0.1  # RTK (2 cm) with the lever arm removed
+
+
+def test_the_command_line_writes_a_survey(tmp_path, capsys):
+    out = tmp_path / "cli.mcap"
+    assert (
+        main(
+            [
+                "sim",
+                "--grid",
+                "4x4",
+                "--goal",
+                "2",
+                "--gnss",
+                "float",
+                "--outage",
+                "0.5:1.0",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    assert out.exists() and out.with_suffix(".truth.csv").exists()
+    assert "wrote" in capsys.readouterr().out
+    assert main(["sim", "--grid", "4", "--out", str(out)]) == 2
