@@ -15,6 +15,7 @@ columns at y = +-width/2. The goal is 23 m ahead of the start, as in the paper.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -109,8 +110,8 @@ def drive(points: np.ndarray, settings: DriveSettings | None = None) -> np.ndarr
 
 def _densify(points: np.ndarray, step: float) -> np.ndarray:
     out = [points[0]]
-    for a, b in zip(points[:-1], points[1:], strict=True):
-        n = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
+    for a, b in itertools.pairwise(points):
+        n = max(1, math.ceil(np.linalg.norm(b - a) / step))
         out.extend(a + (b - a) * (i / n) for i in range(1, n + 1))
     return np.array(out)
 
