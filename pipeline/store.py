@@ -1,0 +1,137 @@
+"""The store of record: `traits.sqlite` in WAL mode, committed after every scan, so a power
+cut loses at most the scan in flight and the file always opens clean.
+
+Tables:
+- `run`: key/value facts about the run (software, calibration, method, start time).
+- `trees`: the latest state of every tree (one row per tree, replaced on each update).
+- `observations`: every per-scan observation of a tree (append only).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from drivers.records import Tree
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS trees (
+    tree_id TEXT PRIMARY KEY,
+    field_id TEXT, row TEXT,
+    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
+    width_m REAL NOT NULL, height_m REAL NOT NULL, ndvi REAL,
+    observations INTEGER NOT NULL, first_seen INTEGER NOT NULL, last_seen INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS observations (
+    scan_t INTEGER NOT NULL, tree_id TEXT NOT NULL,
+    x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL, frame TEXT NOT NULL,
+    width_m REAL, height_m REAL, ndvi REAL, points INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS observations_tree ON observations (tree_id);
+"""
+
+
+@dataclass(frozen=True, slots=True)
+class Observation:
+    """One tree seen in one scan (a cluster associated with it)."""
+
+    scan_t: int
+    tree_id: str
+    x: float
+    y: float
+    z: float
+    frame: str
+    width_m: float | None
+    height_m: float | None
+    ndvi: float | None
+    points: int
+
+
+class TraitStore:
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        # autocommit off: one transaction per scan, committed by `commit_scan`.
+        self._db = sqlite3.connect(self.path, isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable at checkpoints
+        self._db.executescript(SCHEMA)
+
+    def set_run_facts(self, facts: dict) -> None:
+        self._db.execute("BEGIN")
+        for key, value in facts.items():
+            text = value if isinstance(value, str) else json.dumps(value)
+            self._db.execute("INSERT OR REPLACE INTO run VALUES (?, ?)", (key, text))
+        self._db.execute("COMMIT")
+
+    def commit_scan(self, observations: Iterable[Observation], trees: Iterable[Tree]) -> None:
+        """Everything one scan changed, in one transaction."""
+        self._db.execute("BEGIN")
+        try:
+            self._db.executemany(
+                "INSERT INTO observations VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [
+                    (
+                        o.scan_t,
+                        o.tree_id,
+                        o.x,
+                        o.y,
+                        o.z,
+                        o.frame,
+                        o.width_m,
+                        o.height_m,
+                        o.ndvi,
+                        o.points,
+                    )
+                    for o in observations
+                ],
+            )
+            self._db.executemany(
+                "INSERT OR REPLACE INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [
+                    (
+                        t.tree_id,
+                        t.field_id,
+                        t.row,
+                        t.easting,
+                        t.northing,
+                        t.utm_zone,
+                        t.lat,
+                        t.lon,
+                        t.width_m,
+                        t.height_m,
+                        t.ndvi,
+                        t.observations,
+                        t.first_seen,
+                        t.last_seen,
+                    )
+                    for t in trees
+                ],
+            )
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    def trees(self) -> list[Tree]:
+        rows = self._db.execute(
+            "SELECT tree_id, easting, northing, utm_zone, lat, lon, width_m, height_m, ndvi, "
+            "observations, first_seen, last_seen, field_id, row FROM trees ORDER BY tree_id"
+        ).fetchall()
+        return [Tree(*row) for row in rows]
+
+    def observation_count(self) -> int:
+        return self._db.execute("SELECT COUNT(*) FROM observations").fetchone()[0]
+
+    def close(self) -> None:
+        self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        self._db.close()
+
+    def __enter__(self) -> TraitStore:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
