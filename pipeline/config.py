@@ -1,0 +1,202 @@
+"""Settings of the tree pipeline (detection, tracking, traits), each with the reason for
+its default. One frozen dataclass per step; each step gets only its own section.
+
+The paper fixes the Kalman models, the association gates and the trait definitions; it
+gives no number for the spatial filter, the ground fit, the voxel grid or the clustering.
+Those are chosen here from VLP-16 geometry and measured on the digital twin (the sweep
+is in docs/pipeline.md). VLP-16 facts used below: 16 rings 2 deg apart (two adjacent
+rings hit a surface 0.035 r m apart at range r), 0.2 deg between firings along a ring at
+600 rpm (0.0035 r m), +-3 cm range noise, mounted 0.38-0.44 m above the ground on a
+Jackal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from treetraits.errors import ConfigError
+
+TRAIT_METHODS = ("paper", "robust")
+CLUSTERING_METHODS = ("kdtree", "dbscan")
+GROUND_METHODS = ("numpy", "open3d")
+
+
+@dataclass(frozen=True)
+class CropConfig:
+    """The spatial filter: an axis-aligned box in `base` (base_footprint: x forward, y left,
+    z up from the ground under the robot)."""
+
+    # +-15 m: the height rule needs the crown top in view, and the top ring (+15 deg)
+    # clears a 2.7 m citrus crown only from ~9 m away; past ~15 m rings are > 0.5 m
+    # apart, more than the cluster tolerance, so a tree falls apart into ring slivers.
+    x_m: tuple[float, float] = (-15.0, 15.0)
+    y_m: tuple[float, float] = (-15.0, 15.0)
+    # From below any ground a 10 % slope puts within the box to above tall trees.
+    z_m: tuple[float, float] = (-2.0, 8.0)
+    # Returns within this horizontal distance of the LiDAR are the robot itself (a Jackal
+    # is 0.51 x 0.43 m; the VLP-16 reports nothing nearer than ~0.4 m anyway).
+    min_range_m: float = 0.6
+
+
+@dataclass(frozen=True)
+class GroundConfig:
+    """RANSAC plane and the ground band."""
+
+    # Points offered to RANSAC: within this height of the robot's own footprint plane.
+    # The ground is the lowest surface and passes through z = 0 under the robot; a 3 deg
+    # slope rises 0.5 m in 10 m, enough for the plane's tilt to be fitted.
+    candidate_window_m: float = 0.5
+    # RANSAC inlier distance: VLP-16 range noise (+-3 cm) seen at grazing angles plus
+    # soil roughness.
+    distance_m: float = 0.08
+    # Three-point hypotheses. With a share w of ground among the candidates, all of k
+    # draws miss it with probability (1 - w^3)^k: 1e-7 for w = 0.6 and k = 100.
+    iterations: int = 100
+    # Cap on the points given to RANSAC (an even stride through the candidates): the
+    # near rings oversample the ground. 1000 points with +-3 cm noise pin the refitted
+    # plane's tilt to ~0.1 deg and its height to ~1 mm; RANSAC's cost is points x draws.
+    max_points: int = 1000
+    seed: int = 0  # the RANSAC draws: same scan -> same plane
+    # "numpy": our seeded RANSAC (deterministic). "open3d": `segment_plane`, whose
+    # threads share one RNG, so a scan's plane can differ between two runs.
+    method: str = "numpy"
+    # A fitted plane tilted more than this, or with fewer inliers, is not the ground
+    # (a wall, a canopy skirt): fall back to z = 0 of base_footprint.
+    max_tilt_deg: float = 15.0
+    min_inliers: int = 200
+    # Points lower than this above the plane are ground candidates. Above RANSAC's band
+    # (range noise) and below the lowest citrus skirts (trunks are bare to ~0.3 m in
+    # pruned groves); RPH uses 0.2 m for the same job.
+    clearance_m: float = 0.15
+    # The NDVI check (the paper's "projection on the image"): a ground candidate at least
+    # `skirt_min_height_m` above the plane whose NDVI is at least `skirt_min_ndvi` is
+    # foliage (a skirt hanging to the ground), not soil. Such a point never starts or
+    # joins clusters on its own: it is given to the nearest cluster within the cluster
+    # tolerance, else dropped, so a green cover crop cannot bridge two trees.
+    # 0.4: between bare soil (0.1-0.2) and citrus foliage (0.5-0.8); the paper's
+    # vegetation mask (-0.3, 1.0] is a frame-level mask and passes soil too.
+    skirt_min_ndvi: float = 0.4
+    skirt_min_height_m: float = 0.05
+
+
+@dataclass(frozen=True)
+class ClusterConfig:
+    """Voxel grid, then single-linkage Euclidean clustering."""
+
+    # 0.2 m: the ring spacing at 5-6 m, mid-range for a tree beside a row. Along a ring
+    # the VLP-16 samples every 0.0035 r (2 cm at 5 m), ten times denser than across
+    # rings; the grid evens that out, so near trees do not swamp the point budget and
+    # `num_points` follows surface area. Traits use every return, not the voxels, so
+    # the grid costs them nothing; 0.1 m found the same trees on the twin, with 1-2
+    # duplicates more and ~1.3x the time (docs).
+    voxel_m: float = 0.2
+    # Two points closer than this are in one cluster. It must bridge the gap between
+    # adjacent rings on a crown (0.035 r: 0.35 m at 10 m) or a far tree falls into one
+    # cluster per ring, and stay below the gap between neighbouring crowns (> 1 m in
+    # groves planted 4-6 m apart). Swept 0.3-0.6 in docs/pipeline.md.
+    tolerance_m: float = 0.5
+    # Size limits in voxels. 10: a far crown seen by two rings is ~30 voxels; a post,
+    # a trunk alone, a few leaves are fewer. 20000: far above one tree's visible side
+    # (300-600 for a 2.7 m crown), only a wall or a building is bigger.
+    min_points: int = 10
+    max_points: int = 20000
+    # "kdtree": scipy cKDTree pairs + connected components; "dbscan": open3d
+    # `cluster_dbscan(eps, min_points=1)`. Same clusters; see docs for the timing.
+    method: str = "kdtree"
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """One Kalman filter per tree over m_k = [centroid x y z, num_points, mean NDVI]."""
+
+    # The paper's models: F = H = Q = I5, R = 0.1 I5, a new tree starts with P = I5.
+    q: float = 1.0
+    r: float = 0.1
+    p0: float = 1.0
+    # p = exp(-prob_scale * d) with d the Mahalanobis distance of the normalised innovation.
+    prob_scale: float = 0.1
+    # Associate when p_max > th_p and the entropy (log base M) < th_h.
+    th_p: float = 0.5
+    th_h: float = 0.8
+    # "Normalised to reflect the percentage change": each component of m_k - Hx divided
+    # by |Hx| of that component, in percent (x 100), positions in the LiDAR frame as in
+    # the paper. In fractions (x 1) a 5 m jump is d ~ 1, p ~ 0.9 for every tree, the
+    # entropy is ~1 and no cluster was ever associated on the twin (docs).
+    percent: float = 100.0
+    # Guards for the division, per component (x, y, z in m; points; NDVI): a tree just
+    # beside the LiDAR has x ~ 0, a crown centroid z ~ 0.5 m, NDVI of dry canopy ~ 0.
+    floor: tuple[float, float, float, float, float] = (1.0, 1.0, 1.0, 10.0, 0.1)
+    # Trees that cannot be seen are left out of the association (not predicted, not in
+    # M): a tree counts as in view when it lies inside the crop box grown by this margin
+    # (a crown radius and a bit: its near side can be in the box while its centre is not).
+    view_margin_m: float = 2.0
+    # Two trees whose centres come closer than this are one tree seen twice (the
+    # paper's field-map matching collapses them; without a map we merge, keeping the
+    # older). 0 turns it off. 1.5 m: half the closest planting distance in citrus (3 m).
+    merge_distance_m: float = 1.5
+
+
+@dataclass(frozen=True)
+class TraitsConfig:
+    method: str = "paper"  # "paper" (max over scans) or "robust" (accumulated cells)
+    slices: int = 10  # the paper's z-slices for the width
+    # robust: each tree's returns in the world frame on a grid of this cell size, with
+    # the number of scans that hit each cell. 0.1 m: a leaf cluster; fine enough that the
+    # crown outline moves by < 1 % of a 2.7 m width, coarse enough that one surface patch
+    # is hit again from scan to scan (0.05 m measured slightly worse, docs).
+    voxel_m: float = 0.1
+    # A cell counts when at least this many scans hit it: stray returns (mixed pixels
+    # at crown edges, dust, a leaf blown out) are hit once; 3 kept 2 % stray returns out
+    # of the widths on the twin where 2 let one tree grow 11 % (docs).
+    min_hits: int = 3
+    # Cells per tree before the grid coarsens (x 2): a 2.7 m crown fills ~3000 at 0.1 m,
+    # so only a tree mapped for a very long time or a hedge hits it; ~0.5 MB a tree.
+    max_points: int = 20000
+    # The width is the largest horizontal extent over this many bearings (5 deg: the
+    # largest extent is missed by at most 1 - cos 2.5 deg = 0.1 %).
+    directions: int = 36
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    crop: CropConfig = field(default_factory=CropConfig)
+    ground: GroundConfig = field(default_factory=GroundConfig)
+    cluster: ClusterConfig = field(default_factory=ClusterConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    traits: TraitsConfig = field(default_factory=TraitsConfig)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+def validate(config: MapperConfig) -> None:
+    """Raise ConfigError naming the first bad value."""
+
+    def need(ok: bool, what: str) -> None:
+        if not ok:
+            raise ConfigError(f"pipeline config: {what}")
+
+    c = config.crop
+    for name, (lo, hi) in (("x_m", c.x_m), ("y_m", c.y_m), ("z_m", c.z_m)):
+        need(lo < hi, f"crop.{name} must be (low, high) with low < high, got {(lo, hi)}")
+    g = config.ground
+    need(g.distance_m > 0 and g.iterations > 0, "ground.distance_m and iterations must be > 0")
+    need(g.max_points >= 3, "ground.max_points must be >= 3")
+    need(0 < g.max_tilt_deg < 90, "ground.max_tilt_deg must be in (0, 90)")
+    need(g.method in GROUND_METHODS, f"ground.method must be one of {GROUND_METHODS}")
+    k = config.cluster
+    need(k.voxel_m > 0 and k.tolerance_m > 0, "cluster.voxel_m and tolerance_m must be > 0")
+    need(1 <= k.min_points <= k.max_points, "cluster: need 1 <= min_points <= max_points")
+    need(k.method in CLUSTERING_METHODS, f"cluster.method must be one of {CLUSTERING_METHODS}")
+    t = config.tracking
+    need(t.q >= 0 and t.r > 0 and t.p0 > 0, "tracking: need q >= 0, r > 0, p0 > 0")
+    need(0 <= t.th_p <= 1 and 0 <= t.th_h <= 1, "tracking.th_p and th_h must be in [0, 1]")
+    need(len(t.floor) == 5 and min(t.floor) > 0, "tracking.floor: five positive numbers")
+    need(t.percent > 0 and t.prob_scale > 0, "tracking.percent and prob_scale must be > 0")
+    r = config.traits
+    need(r.method in TRAIT_METHODS, f"traits.method must be one of {TRAIT_METHODS}")
+    need(r.slices >= 1 and r.directions >= 2, "traits: slices >= 1, directions >= 2")
+    need(r.min_hits >= 1, "traits.min_hits must be >= 1")
+    need(r.voxel_m > 0 and r.max_points > 0, "traits.voxel_m and max_points must be > 0")
+    need(math.isfinite(t.view_margin_m), "tracking.view_margin_m must be finite")

@@ -1,0 +1,384 @@
+"""Per scan: trees as clusters of points (the paper's `compute_clusters`, Algorithm 1 l.3).
+
+Pure functions over arrays; `detect` is the recipe. Everything happens in `base`
+(base_footprint: x forward, y left, z up from the ground under the robot), so heights
+read directly and the crop box is robot-relative whatever the LiDAR mount.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from pipeline.config import ClusterConfig, CropConfig, GroundConfig, MapperConfig
+
+# Voxel keys: 21 bits per axis (+-1M cells: +-100 km at 0.1 m), packed into one int64.
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+@dataclass(frozen=True)
+class GroundPlane:
+    """a x + b y + c z + d = 0 in `base`, (a, b, c) a unit normal with c > 0."""
+
+    normal: np.ndarray
+    d: float
+    inliers: int
+    fitted: bool  # False: RANSAC found no acceptable plane; z = 0 of base_footprint
+
+    def height(self, xyz: np.ndarray) -> np.ndarray:
+        """Vertical height of each point above the plane (m)."""
+        return (xyz @ self.normal + self.d) / self.normal[2]
+
+    def z_at(self, x: float, y: float) -> float:
+        a, b, c = self.normal
+        return float(-(a * x + b * y + self.d) / c)
+
+    @property
+    def tilt_deg(self) -> float:
+        return math.degrees(math.acos(min(1.0, float(self.normal[2]))))
+
+
+FLAT = GroundPlane(np.array([0.0, 0.0, 1.0]), 0.0, 0, False)
+
+
+@dataclass(frozen=True)
+class Cluster:
+    """One cluster C_k. `centroid`, `num_points` and `ndvi` are the paper's m_k (centroid
+    and count over the voxel grid's points); `hull_area`/`hull_volume` are the paper's
+    suggested extra features (3D hull of the voxel points), computed when first read:
+    the association does not use them and qhull costs ~0.2 ms a cluster."""
+
+    centroid: np.ndarray  # (3,) base frame
+    num_points: int  # voxels
+    ndvi: float  # mean NDVI of its returns that have one; NaN if none
+    voxels: np.ndarray  # (num_points, 3) voxel centroids, base frame
+    points: np.ndarray  # (n, 3) every return of the cluster, base frame
+    ring: np.ndarray  # (n,) uint8, ring of each return
+    ground_z: float  # ground plane height under the centroid, base frame
+
+    @property
+    def features(self) -> np.ndarray:
+        """m_k = [x, y, z, num_points, mean NDVI] (NDVI may be NaN)."""
+        return np.array([*self.centroid, self.num_points, self.ndvi], dtype=float)
+
+    @cached_property
+    def hull(self) -> tuple[float, float]:
+        return hull_area_volume(self.voxels)
+
+    @property
+    def hull_area(self) -> float:
+        """Surface area of the 3D convex hull (m^2); 0 for a flat cluster."""
+        return self.hull[0]
+
+    @property
+    def hull_volume(self) -> float:
+        """Volume of the 3D convex hull (m^3)."""
+        return self.hull[1]
+
+
+@dataclass(frozen=True)
+class Detection:
+    clusters: list[Cluster]
+    plane: GroundPlane
+    # How many points went where: input, cropped (kept by the box), ground, skirt
+    # (ground candidates kept as foliage), voxels, clustered voxels, clusters dropped.
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def to_base(points: np.ndarray, T_base_lidar: np.ndarray) -> np.ndarray:
+    """N x 3 float64 in `base` from a POINT_DTYPE array in `lidar`."""
+    xyz = np.empty((len(points), 3))
+    xyz[:, 0], xyz[:, 1], xyz[:, 2] = points["x"], points["y"], points["z"]
+    if np.array_equal(T_base_lidar[:3, :3], np.eye(3)):  # the usual level mount
+        xyz += T_base_lidar[:3, 3]
+        return xyz
+    return xyz @ T_base_lidar[:3, :3].T + T_base_lidar[:3, 3]
+
+
+def crop_mask(xyz: np.ndarray, config: CropConfig, lidar_xy: np.ndarray) -> np.ndarray:
+    """Inside the box and not on the robot (horizontal distance from the LiDAR)."""
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    keep = (x >= config.x_m[0]) & (x <= config.x_m[1])
+    keep &= (y >= config.y_m[0]) & (y <= config.y_m[1])
+    keep &= (z >= config.z_m[0]) & (z <= config.z_m[1])
+    near = (x - lidar_xy[0]) ** 2 + (y - lidar_xy[1]) ** 2 < config.min_range_m**2
+    return keep & ~near
+
+
+def fit_ground(xyz: np.ndarray, config: GroundConfig) -> GroundPlane:
+    """RANSAC plane through the points near the footprint plane, refitted by least
+    squares on its inliers; FLAT when no acceptable plane is found."""
+    index = np.flatnonzero(np.abs(xyz[:, 2]) < config.candidate_window_m)
+    if len(index) < max(3, config.min_inliers):
+        return FLAT
+    if len(index) > config.max_points:
+        index = index[np.linspace(0, len(index) - 1, config.max_points).astype(np.int64)]
+    candidates = xyz[index]
+    if config.method == "open3d":
+        normal, d = _open3d_plane(candidates, config)
+    else:
+        normal, d = _ransac_plane(candidates, config)
+    if normal is None:
+        return FLAT
+    # Least squares on the inliers: the plane no longer depends on which three points
+    # RANSAC happened to draw.
+    inliers = candidates[np.abs(candidates @ normal + d) < config.distance_m]
+    if len(inliers) < config.min_inliers:
+        return FLAT
+    centre = inliers.mean(axis=0)
+    normal = np.linalg.svd(inliers - centre, full_matrices=False)[2][2]
+    if normal[2] < 0:
+        normal = -normal
+    plane = GroundPlane(normal, float(-normal @ centre), len(inliers), True)
+    return plane if plane.tilt_deg <= config.max_tilt_deg else FLAT
+
+
+def _ransac_plane(points: np.ndarray, config: GroundConfig):
+    """Seeded RANSAC: `iterations` three-point planes, those tilted more than the
+    limit skipped (the ground, not a wall or a crown's flank), most inliers wins."""
+    rng = np.random.default_rng(config.seed)
+    sample = points[rng.integers(0, len(points), (config.iterations, 3))]
+    points = points.astype(np.float32)  # counting inliers at mm precision: float32 is plenty
+    normal = np.cross(sample[:, 1] - sample[:, 0], sample[:, 2] - sample[:, 0])
+    length = np.linalg.norm(normal, axis=1)
+    normal = normal / np.where(length > 0, length, 1.0)[:, None]
+    upright = np.abs(normal[:, 2]) >= math.cos(math.radians(config.max_tilt_deg))
+    upright &= length > 0
+    if not upright.any():
+        return None, 0.0
+    normal = normal[upright]
+    d = -(normal * sample[upright, 0]).sum(axis=1)
+    distance = points @ normal.T.astype(np.float32)
+    distance += d.astype(np.float32)
+    inliers = (np.abs(distance) < config.distance_m).sum(axis=0)
+    best = int(np.argmax(inliers))  # ties: the first drawn
+    return normal[best], float(d[best])
+
+
+def _open3d_plane(points: np.ndarray, config: GroundConfig):
+    """open3d's segment_plane. Its worker threads share one RNG, so the plane can differ
+    between two runs of the same scan (seen: 0.8 mm in a tree height): not the default."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    o3d.utility.random.seed(config.seed)
+    model, _ = cloud.segment_plane(config.distance_m, 3, config.iterations)
+    normal = np.asarray(model[:3], dtype=float)
+    length = float(np.linalg.norm(normal))
+    if not length > 0:
+        return None, 0.0
+    return normal / length, float(model[3]) / length
+
+
+def split_ground(
+    height: np.ndarray, ndvi: np.ndarray | None, config: GroundConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(above, skirt): points clear of the ground band, and ground-band points that the
+    NDVI check keeps as foliage. Everything else is ground."""
+    above = height >= config.clearance_m
+    if ndvi is None:
+        return above, np.zeros_like(above)
+    with np.errstate(invalid="ignore"):
+        green = ndvi >= config.skirt_min_ndvi  # NaN: never
+    skirt = ~above & (height >= config.skirt_min_height_m) & green
+    return above, skirt
+
+
+def voxel_grid(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """(voxel of each point, voxel centroids): the PCL VoxelGrid (centroid per occupied
+    leaf), leaves on a fixed grid anchored at the frame origin, voxels in key order."""
+    cells = np.floor(xyz / size).astype(np.int64) + _KEY_OFFSET
+    keys = (cells[:, 0] << (2 * _KEY_BITS)) | (cells[:, 1] << _KEY_BITS) | cells[:, 2]
+    _, inverse = np.unique(keys, return_inverse=True)
+    inverse = inverse.ravel()
+    count = np.bincount(inverse)
+    centroids = np.column_stack(
+        [np.bincount(inverse, weights=xyz[:, axis]) / count for axis in range(3)]
+    )
+    return inverse, centroids
+
+
+def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree") -> np.ndarray:
+    """Single-linkage clusters: two points closer than `tolerance` share a cluster.
+    Labels 0.. numbered by each cluster's first point (deterministic)."""
+    n = len(xyz)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if method == "dbscan":
+        import open3d as o3d
+
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+        labels = np.asarray(cloud.cluster_dbscan(tolerance, 1, print_progress=False))
+        _, first, labels = np.unique(labels, return_index=True, return_inverse=True)
+        rank = np.empty(len(first), dtype=np.int64)
+        rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+        return rank[labels.ravel()]
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(xyz).query_pairs(tolerance, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs), dtype=bool), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return labels.astype(np.int64)
+
+
+def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, tolerance: float):
+    """Label of the nearest anchor within `tolerance` for each point, -1 where none."""
+    if len(points) == 0 or len(anchors) == 0:
+        return np.full(len(points), -1, dtype=np.int64)
+    from scipy.spatial import cKDTree
+
+    distance, index = cKDTree(anchors).query(points, distance_upper_bound=tolerance)
+    found = np.isfinite(distance)
+    out = np.full(len(points), -1, dtype=np.int64)
+    out[found] = labels[index[found]]
+    return out
+
+
+def hull_area_volume(xyz: np.ndarray) -> tuple[float, float]:
+    """Surface area and volume of the 3D convex hull; (0, 0) when it is degenerate."""
+    if len(xyz) < 4:
+        return 0.0, 0.0
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(xyz)
+    except (QhullError, ValueError):  # flat or collinear: no volume
+        return 0.0, 0.0
+    return float(hull.area), float(hull.volume)
+
+
+NdviSource = np.ndarray | Callable[[np.ndarray], np.ndarray] | None
+
+
+def detect(
+    points: np.ndarray,
+    ndvi: NdviSource,
+    T_base_lidar: np.ndarray,
+    config: MapperConfig,
+    stage_ms: dict[str, float] | None = None,
+) -> Detection:
+    """Clusters of one scan. `points` POINT_DTYPE in `lidar`. `ndvi`: None without a
+    camera; an array, one value per point (NaN where unknown); or a function from point
+    indices to their NDVI, called once for the points that can need it (those clear of
+    the ground by at least the skirt height), so only they are projected.
+    `stage_ms`, if given, receives each stage's time in ms."""
+    clock = StageClock(stage_ms)
+    counts = {"points": len(points)}
+    # Robot-relative box: the far field is too sparse to cluster and the robot is not a tree.
+    xyz = to_base(points, T_base_lidar)
+    keep = np.flatnonzero(crop_mask(xyz, config.crop, T_base_lidar[:2, 3]))
+    xyz, ring = np.take(xyz, keep, axis=0), points["ring"][keep]
+    counts["cropped"] = len(xyz)
+    clock.lap("crop")
+
+    # The ground is the dominant plane near the footprint; height above it, not z,
+    # tells ground from tree when the field slopes.
+    plane = fit_ground(xyz, config.ground)
+    height = plane.height(xyz)
+    clock.lap("ground")
+
+    # The image check: low points that look like foliage are a skirt, not soil.
+    values = None
+    if ndvi is not None:
+        values = np.full(len(xyz), np.nan)
+        if callable(ndvi):
+            need = np.flatnonzero(height >= config.ground.skirt_min_height_m)
+            if len(need):
+                values[need] = ndvi(keep[need])
+            clock.lap("ndvi")
+        else:
+            values[:] = np.asarray(ndvi, dtype=float)[keep]
+    ndvi = values
+    above, skirt = split_ground(height, ndvi, config.ground)
+    kept = above | skirt
+    counts["ground"] = int(len(xyz) - kept.sum())
+    counts["skirt"] = int(skirt.sum())
+    xyz, ring, above = xyz[kept], ring[kept], above[kept]
+    ndvi = None if ndvi is None else ndvi[kept]
+    clock.lap("ndvi_check")
+
+    # Voxel grid: even out the VLP-16's 10:1 along-ring oversampling before clustering.
+    voxel_of, voxels = voxel_grid(xyz, config.cluster.voxel_m)
+    core = np.zeros(len(voxels), dtype=bool)
+    core[voxel_of[above]] = True  # a voxel with any point clear of the ground band
+    counts["voxels"] = len(voxels)
+    clock.lap("voxel")
+
+    # Euclidean clustering of the voxels clear of the ground; skirt voxels only join the
+    # cluster they touch, so they can neither start a cluster nor bridge two.
+    labels = np.full(len(voxels), -1, dtype=np.int64)
+    core_index = np.flatnonzero(core)
+    labels[core_index] = euclidean_clusters(
+        voxels[core_index], config.cluster.tolerance_m, config.cluster.method
+    )
+    if not core.all():
+        labels[~core] = attach(
+            voxels[~core], voxels[core_index], labels[core_index], config.cluster.tolerance_m
+        )
+    clusters_kept = _size_filter(labels, config.cluster)
+    counts["clusters_dropped"] = int(labels.max(initial=-1) + 1 - len(clusters_kept))
+    clock.lap("cluster")
+
+    clusters = _features(clusters_kept, labels, voxel_of, voxels, xyz, ring, ndvi, plane)
+    counts["clustered_voxels"] = sum(c.num_points for c in clusters)
+    clock.lap("features")
+    return Detection(clusters, plane, counts)
+
+
+def _size_filter(labels: np.ndarray, config: ClusterConfig) -> np.ndarray:
+    """Cluster labels whose voxel count is within the limits, in label order."""
+    sizes = np.bincount(labels[labels >= 0], minlength=labels.max(initial=-1) + 1)
+    return np.flatnonzero((sizes >= config.min_points) & (sizes <= config.max_points))
+
+
+def _features(kept, labels, voxel_of, voxels, xyz, ring, ndvi, plane) -> list[Cluster]:
+    point_label = labels[voxel_of]
+    order = np.argsort(point_label, kind="stable")
+    bounds = np.searchsorted(point_label[order], np.stack([kept, kept + 1]))
+    voxel_order = np.argsort(labels, kind="stable")
+    voxel_bounds = np.searchsorted(labels[voxel_order], np.stack([kept, kept + 1]))
+    clusters = []
+    for k in range(len(kept)):
+        members = order[bounds[0, k] : bounds[1, k]]
+        cells = voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]]
+        centroid = cells.mean(axis=0)
+        mean_ndvi = float("nan")
+        if ndvi is not None:
+            values = ndvi[members]
+            finite = values[np.isfinite(values)]
+            if len(finite):
+                mean_ndvi = float(finite.mean())
+        clusters.append(
+            Cluster(
+                centroid=centroid,
+                num_points=len(cells),
+                ndvi=mean_ndvi,
+                voxels=cells,
+                points=xyz[members],
+                ring=ring[members],
+                ground_z=plane.z_at(centroid[0], centroid[1]),
+            )
+        )
+    return clusters
+
+
+class StageClock:
+    """Stage timer for the benchmark; does nothing without a dict to fill."""
+
+    def __init__(self, out: dict[str, float] | None):
+        self.out = out
+        self.last = time.perf_counter() if out is not None else 0.0
+
+    def lap(self, name: str) -> None:
+        if self.out is not None:
+            now = time.perf_counter()
+            self.out[name] = self.out.get(name, 0.0) + (now - self.last) * 1e3
+            self.last = now

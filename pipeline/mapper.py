@@ -1,0 +1,318 @@
+"""The one processing API: scans (with a camera frame and a pose when there are) in,
+mapped trees out. The replay and the service both call `TreeMapper.process`.
+
+Deterministic: the same scans, frames and poses give the same trees. Works without a
+camera (NDVI left out of the association) and without GNSS (poses in `odom`, georeferenced
+later), and without any pose (trees held in the LiDAR frame, moved by the robot's motion
+if one is given, else standing still).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from drivers.calibration import Calibration
+from drivers.records import Frame, Pose, Scan
+from pipeline.config import MapperConfig
+from pipeline.detection import Cluster, GroundPlane, StageClock, detect
+from pipeline.tracking import Motion, Tracker, motion_transform
+from pipeline.traits import PaperTraits, RobustTraits, new_traits
+
+LIDAR_FRAME = "lidar"
+
+
+@dataclass(frozen=True)
+class ClusterResult:
+    """One cluster of the scan and what the tracker made of it."""
+
+    centroid: np.ndarray  # (3,) in the mapper's frame
+    num_points: int
+    ndvi: float  # NaN without NDVI
+    tree_id: int  # after merges: the tree that holds this cluster now
+    outcome: str  # "updated", "created", "merged" or "duplicate" (tracking.Decision)
+    p_max: float  # NaN when there was no tree to compare with
+    entropy: float
+    cluster: Cluster  # the detection (base frame): its returns, rings, ground, hull
+
+    @property
+    def hull_area(self) -> float:
+        return self.cluster.hull_area
+
+    @property
+    def hull_volume(self) -> float:
+        return self.cluster.hull_volume
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    t: int  # the scan's middle, host clock, ns
+    frame: str  # the frame of the centroids and the trees: "odom", "utm" or "lidar"
+    clusters: list[ClusterResult]
+    created: list[int]  # trees started by this scan (and still there)
+    updated: list[int]  # trees updated by this scan, or that absorbed another
+    merged: list[tuple[int, int]]  # (kept, absorbed) tree ids
+    ndvi: str  # "ok", "no_frame" (none given), "no_camera", or fuse_scan's reason
+    plane: GroundPlane
+    counts: dict[str, int] = field(default_factory=dict)
+    stage_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TrackedTree:
+    tree_id: int
+    x: float
+    y: float
+    z: float  # centroid height in the frame
+    frame: str
+    width_m: float
+    height_m: float
+    ndvi: float | None  # mean over its returns that had NDVI
+    observations: int
+    first_seen: int  # ns, host clock
+    last_seen: int
+    traits: str  # "paper" or "robust"
+
+
+@dataclass
+class _Tree:
+    traits: PaperTraits | RobustTraits
+    ndvi_sum: float = 0.0
+    ndvi_count: int = 0
+
+
+class TreeMapper:
+    def __init__(
+        self,
+        config: MapperConfig | None = None,
+        calibration: Calibration | None = None,
+        *,
+        timing: bool = False,
+    ):
+        self.config = config or MapperConfig()
+        self.calibration = calibration or Calibration()
+        self.timing = timing
+        self.T_base_lidar = np.asarray(self.calibration.T_base_lidar, dtype=float)
+        self.T_lidar_base = np.linalg.inv(self.T_base_lidar)
+        self.tracker = Tracker(self.config.tracking)
+        self.frame: str | None = None  # fixed by the first scan
+        self._trees: dict[int, _Tree] = {}
+        self._last_t: int | None = None
+        # The frame the robust traits accumulate in, from the map frame: the world itself
+        # when poses are known; without poses the map is the moving LiDAR frame, so the
+        # returns are held where the motion says the first scan's LiDAR frame is now.
+        self._traits_from_map = np.eye(4)
+
+    def process(
+        self,
+        scan: Scan,
+        frame: Frame | None = None,
+        pose: Pose | None = None,
+        *,
+        motion: Motion | None = None,
+    ) -> ScanResult:
+        """Detect, associate and measure the trees of one scan. `pose`: base_footprint in
+        a world frame at the scan's middle; all scans of a run must use the same frame
+        (or none). `motion`: used only without poses, for the paper's B v_x prediction."""
+        stage_ms: dict[str, float] | None = {} if self.timing else None
+        t = scan.t_host - (scan.t_end - scan.t_start) // 2
+        map_from_base = self._map_from_base(pose, motion, t)
+        # Dual returns: each echo once (a single-return scan has no duplicates to drop).
+        points = scan.distinct if scan.points["duplicate"].any() else scan.points
+
+        ndvi_reason, ndvi_of = self._ndvi(scan, points, frame)
+        detection = detect(points, ndvi_of, self.T_base_lidar, self.config, stage_ms)
+        if ndvi_of is not None:
+            ndvi_reason = ndvi_of.reason
+
+        # m_k in the map frame; the gate compares positions in the LiDAR frame.
+        clock = StageClock(stage_ms)
+        measurements = self._measurements(detection.clusters, map_from_base)
+        base_from_map = np.linalg.inv(map_from_base)
+        in_view = self._in_view(base_from_map)
+        step = self.tracker.step(measurements, self.T_lidar_base @ base_from_map, in_view, t)
+        clock.lap("tracking")
+
+        # Traits: each cluster to the tree it went to; then trees merged this scan.
+        traits_from_base = self._traits_from_map @ map_from_base
+        centres = {
+            tr.tree_id: (self._traits_from_map[:2, :3] @ tr.state[:3])
+            + self._traits_from_map[:2, 3]
+            for tr in self.tracker.tracks
+        }
+        for cluster, decision in zip(detection.clusters, step.decisions, strict=True):
+            if decision.outcome == "duplicate":
+                continue
+            tree = self._trees.setdefault(decision.tree_id, _Tree(new_traits(self.config.traits)))
+            self._observe(tree, cluster, traits_from_base, decision.tree_id, centres)
+        for kept, absorbed in step.merged:
+            self._absorb(kept, absorbed)
+        clock.lap("traits")
+
+        results = [
+            ClusterResult(
+                m[:3].copy(),
+                c.num_points,
+                c.ndvi,
+                d.tree_id,
+                d.outcome,
+                float(d.p_max),
+                float(d.entropy),
+                c,
+            )
+            for c, m, d in zip(detection.clusters, measurements, step.decisions, strict=True)
+        ]
+        created = [d.tree_id for d in step.decisions if d.outcome == "created"]
+        updated = [d.tree_id for d in step.decisions if d.outcome in ("updated", "merged")]
+        return ScanResult(
+            t=t,
+            frame=self.frame,
+            clusters=results,
+            created=created,
+            updated=list(dict.fromkeys(updated + [kept for kept, _ in step.merged])),
+            merged=step.merged,
+            ndvi=ndvi_reason,
+            plane=detection.plane,
+            counts={**detection.counts, "candidates": step.candidates},
+            stage_ms=stage_ms or {},
+        )
+
+    def trees(self) -> list[TrackedTree]:
+        """Every tree in memory, by id, with the configured trait method's values."""
+        out = []
+        for track in sorted(self.tracker.tracks, key=lambda tr: tr.tree_id):
+            tree = self._trees[track.tree_id]
+            position = track.state[:3]
+            centre = tree.traits.centre()
+            x, y = position[0], position[1]
+            if centre is not None:  # traits frame -> the mapper's frame
+                back = np.linalg.inv(self._traits_from_map)
+                x, y = back[:2, :2] @ centre + back[:2, 3]
+            ndvi = tree.ndvi_sum / tree.ndvi_count if tree.ndvi_count else None
+            out.append(
+                TrackedTree(
+                    tree_id=track.tree_id,
+                    x=float(x),
+                    y=float(y),
+                    z=float(position[2]),
+                    frame=self.frame or LIDAR_FRAME,
+                    width_m=float(tree.traits.width),
+                    height_m=float(tree.traits.height),
+                    ndvi=ndvi,
+                    observations=track.observations,
+                    first_seen=track.first_seen,
+                    last_seen=track.last_seen,
+                    traits=tree.traits.method,
+                )
+            )
+        return out
+
+    # --- steps -------------------------------------------------------------------------
+
+    def _map_from_base(self, pose: Pose | None, motion: Motion | None, t: int) -> np.ndarray:
+        """T_map_base for this scan; fixes the run's frame on the first scan."""
+        frame = LIDAR_FRAME if pose is None else pose.frame
+        if self.frame is None:
+            self.frame = frame
+        elif frame != self.frame:
+            raise ValueError(
+                f"scan at {t} has {'no pose' if pose is None else f'a pose in {frame!r}'} but "
+                f"this mapper holds its trees in {self.frame!r}: give every scan of a run a "
+                f"pose in one frame, or none (georeferencing happens after mapping)"
+            )
+        if pose is not None:
+            self._last_t = t
+            c, s = np.cos(pose.yaw), np.sin(pose.yaw)
+            out = np.eye(4)
+            out[:2, :2] = [[c, -s], [s, c]]
+            out[:3, 3] = (pose.x, pose.y, pose.z)
+            return out
+        # No pose: the map is the LiDAR frame of this scan; move the trees by the motion.
+        if motion is not None and self._last_t is not None:
+            dt = (t - self._last_t) / 1e9
+            new_from_old = motion_transform(motion, dt, self.T_base_lidar)
+            self.tracker.move(new_from_old)
+            self._traits_from_map = self._traits_from_map @ np.linalg.inv(new_from_old)
+        self._last_t = t
+        return self.T_lidar_base.copy()
+
+    def _ndvi(self, scan: Scan, points: np.ndarray, frame: Frame | None):
+        if frame is None:
+            return "no_frame", None
+        cal = self.calibration
+        if cal.camera is None or cal.T_camera_lidar is None:
+            return "no_camera", None
+        return "ok", _NdviOf(scan, points, frame, cal)
+
+    def _measurements(self, clusters: list[Cluster], map_from_base: np.ndarray) -> np.ndarray:
+        out = np.empty((len(clusters), 5))
+        for row, cluster in zip(out, clusters, strict=True):
+            row[:3] = map_from_base[:3, :3] @ cluster.centroid + map_from_base[:3, 3]
+            row[3] = cluster.num_points
+            row[4] = cluster.ndvi
+        return out
+
+    def _in_view(self, base_from_map: np.ndarray) -> np.ndarray:
+        """Trees whose centre lies in the crop box grown by the view margin."""
+        if not self.tracker.tracks:
+            return np.zeros(0, dtype=bool)
+        crop, margin = self.config.crop, self.config.tracking.view_margin_m
+        xy = (self.tracker.positions() @ base_from_map[:3, :3].T + base_from_map[:3, 3])[:, :2]
+        return (
+            (xy[:, 0] >= crop.x_m[0] - margin)
+            & (xy[:, 0] <= crop.x_m[1] + margin)
+            & (xy[:, 1] >= crop.y_m[0] - margin)
+            & (xy[:, 1] <= crop.y_m[1] + margin)
+        )
+
+    def _observe(self, tree: _Tree, cluster: Cluster, traits_from_base, tree_id, centres) -> None:
+        world = ground_world = None
+        if isinstance(tree.traits, RobustTraits):
+            world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
+            world = world[_nearest_is(world[:, :2], tree_id, centres)]
+            ground_world = cluster.ground_z + traits_from_base[2, 3]
+        tree.traits.observe(cluster.points, cluster.ring, cluster.ground_z, world, ground_world)
+        if np.isfinite(cluster.ndvi):
+            tree.ndvi_sum += cluster.ndvi * len(cluster.points)
+            tree.ndvi_count += len(cluster.points)
+
+    def _absorb(self, kept: int, absorbed: int) -> None:
+        gone = self._trees.pop(absorbed, None)
+        if gone is None:
+            return
+        tree = self._trees.setdefault(kept, _Tree(new_traits(self.config.traits)))
+        tree.traits.absorb(gone.traits)
+        tree.ndvi_sum += gone.ndvi_sum
+        tree.ndvi_count += gone.ndvi_count
+
+
+def _nearest_is(xy: np.ndarray, tree_id: int, centres: dict[int, np.ndarray]) -> np.ndarray:
+    """Points nearer (x-y) to this tree's centre than to any other tree's: a cluster that
+    took in a piece of a neighbour's crown gives the neighbour's part back (a Voronoi
+    cut between the trees), so it never widens this tree's accumulated cloud."""
+    own = centres[tree_id]
+    reach = float(np.sqrt(((xy - own) ** 2).sum(axis=1).max())) if len(xy) else 0.0
+    others = [c for i, c in centres.items() if i != tree_id and np.hypot(*(c - own)) < 2 * reach]
+    if not others:
+        return np.ones(len(xy), dtype=bool)
+    own_d2 = ((xy - own) ** 2).sum(axis=1)
+    other_d2 = ((xy[:, None, :] - np.array(others)[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+    return own_d2 <= other_d2
+
+
+class _NdviOf:
+    """Per-point NDVI on demand: `detect` asks only for the points that need it (those
+    above the plane), so only they are projected. Remembers fuse_scan's reason."""
+
+    def __init__(self, scan: Scan, points: np.ndarray, frame: Frame, calibration: Calibration):
+        self.scan, self.points, self.frame, self.calibration = scan, points, frame, calibration
+        self.reason = "ok"
+
+    def __call__(self, index: np.ndarray) -> np.ndarray:
+        from pipeline.fusion import fuse_scan
+
+        sub = replace(self.scan, points=self.points[index])
+        fused = fuse_scan(sub, [self.frame], self.calibration)
+        self.reason = fused.reason
+        return np.asarray(fused.ndvi, dtype=float)

@@ -1,0 +1,301 @@
+"""Clusters to trees: one Kalman filter per tree and the paper's probabilistic association
+(Algorithm 1, l.10-23).
+
+The state is m = [x, y, z, num_points, mean NDVI] with F = H = Q = I5, R = 0.1 I5 and a
+new tree at x = m_k, P = I5. For each cluster k and tree j: the innovation m_k - H x_j,
+normalised to a percentage change, its Mahalanobis distance d under S = H P H^T + R,
+p = exp(-0.1 d); the cluster goes to the most probable tree when p_max > th_p and the
+entropy (log base M) of the normalised probabilities is < th_H, else it starts a tree.
+
+Trees live in a "map" frame: the world (odom/utm) when poses are known, where standing
+trees do not move; else the LiDAR frame, moved every scan by the robot's motion (the
+paper's B v_x). The percentage is always taken in the LiDAR frame, as in the paper.
+How each vague point is read is written out in docs/pipeline.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.config import TrackingConfig
+
+DIM = 5
+NDVI = 4  # index of the NDVI component
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Forward speed (m/s) and yaw rate (rad/s) of the robot, for the paper's B v_x
+    prediction when no pose is known."""
+
+    v_x: float
+    omega: float = 0.0
+
+
+def motion_transform(motion: Motion, dt_s: float, T_base_lidar: np.ndarray) -> np.ndarray:
+    """T_new_old of the LiDAR frame after driving `motion` for `dt_s`: a standing tree at
+    p (old LiDAR frame) is at T_new_old @ p now. For omega = 0 this is x <- x - B v_x with
+    B = [cos(theta) dt, sin(theta) dt] and theta = 0, the robot's heading in its own
+    frame; with a turn, the chord of the arc and the rotation."""
+    dtheta = motion.omega * dt_s
+    step = motion.v_x * dt_s
+    c, s = math.cos(dtheta), math.sin(dtheta)
+    old_from_new_base = np.eye(4)
+    old_from_new_base[:2, :2] = [[c, -s], [s, c]]
+    old_from_new_base[:2, 3] = (step * math.cos(dtheta / 2), step * math.sin(dtheta / 2))
+    lidar_from_base = np.linalg.inv(T_base_lidar)
+    old_from_new = lidar_from_base @ old_from_new_base @ T_base_lidar
+    return np.linalg.inv(old_from_new)
+
+
+def normalised_innovation(
+    measured: np.ndarray,
+    predicted: np.ndarray,
+    measured_sensor: np.ndarray,
+    predicted_sensor: np.ndarray,
+    config: TrackingConfig,
+) -> np.ndarray:
+    """The "percentage change" of m_k against H x_j, K x M x 5.
+
+    Each component's difference over the size of the predicted value, |H x_j| (at least
+    the component's floor), times `config.percent`. Positions are compared in the LiDAR
+    frame (`*_sensor`, K x 3 and M x 3) as in the paper, counts and NDVI as they are.
+    """
+    floor = np.asarray(config.floor, dtype=float)
+    diff = np.empty((len(measured), len(predicted), DIM))
+    diff[:, :, :3] = measured_sensor[:, None, :] - predicted_sensor[None, :, :]
+    diff[:, :, 3:] = measured[:, None, 3:] - predicted[None, :, 3:]
+    scale = np.empty((len(predicted), DIM))
+    scale[:, :3] = np.abs(predicted_sensor)
+    scale[:, 3:] = np.abs(predicted[:, 3:])
+    return config.percent * diff / np.maximum(scale, floor)[None, :, :]
+
+
+def mahalanobis(innovation: np.ndarray, S: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """d = sqrt(i^T S^-1 i) over the `used` components of each (k, j) pair.
+
+    innovation K x M x 5, S M x 5 x 5, used K x M x 5 bool (a component is left out, i.e.
+    marginalised, where a cluster or a tree has no NDVI)."""
+    if used.all():  # the usual case: every component measured, one batched solve
+        solved = np.linalg.solve(S[None, :, :, :], innovation[..., None])[..., 0]
+        return np.sqrt(np.einsum("kmi,kmi->km", innovation, solved))
+    out = np.empty(innovation.shape[:2])
+    for mask in np.unique(used.reshape(-1, DIM), axis=0):
+        pairs = np.all(used == mask, axis=2)
+        k, j = np.nonzero(pairs)
+        sub = S[j][:, mask][:, :, mask]
+        i = innovation[k, j][:, mask]
+        out[k, j] = np.sqrt(np.einsum("ni,ni->n", i, np.linalg.solve(sub, i[..., None])[..., 0]))
+    return out
+
+
+def normalised_entropy(log_p: np.ndarray) -> np.ndarray:
+    """H = -sum p^ log_M p^ over each row's normalised probabilities p^ = p / sum p, from
+    log p (so that p far below float range still normalises). H = 0 when M = 1."""
+    m = log_p.shape[-1]
+    if m <= 1:
+        return np.zeros(log_p.shape[:-1])
+    shifted = log_p - log_p.max(axis=-1, keepdims=True)
+    log_hat = shifted - np.log(np.exp(shifted).sum(axis=-1, keepdims=True))
+    hat = np.exp(log_hat)
+    return -(hat * log_hat).sum(axis=-1) / math.log(m)
+
+
+@dataclass
+class Track:
+    """One tree in memory: its Kalman filter and its bookkeeping."""
+
+    tree_id: int
+    kf: object  # filterpy.kalman.KalmanFilter
+    has_ndvi: bool
+    first_seen: int
+    last_seen: int
+    observations: int = 1
+
+    @property
+    def state(self) -> np.ndarray:
+        return self.kf.x[:, 0]
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What happened to one cluster."""
+
+    tree_id: int  # the tree it updated or created (after merges), or the one it duplicated
+    # "updated"; "created"; "merged" (it started a tree that the merge folded into an
+    # older one at once); "duplicate" (dropped: its tree took a likelier cluster).
+    outcome: str
+    p_max: float  # NaN when there was no tree to compare with
+    entropy: float
+
+
+@dataclass
+class StepResult:
+    decisions: list[Decision]
+    candidates: int  # M: trees in view, gated against
+    merged: list[tuple[int, int]] = field(default_factory=list)  # (kept, absorbed)
+
+
+class Tracker:
+    def __init__(self, config: TrackingConfig):
+        self.config = config
+        self.tracks: list[Track] = []
+        self._next_id = 1
+
+    def positions(self) -> np.ndarray:
+        return np.array([t.state[:3] for t in self.tracks]).reshape(-1, 3)
+
+    def move(self, new_from_old: np.ndarray) -> None:
+        """Apply a rigid motion to every tree (the map frame moved: the paper's B v_x)."""
+        rotation, translation = new_from_old[:3, :3], new_from_old[:3, 3]
+        for track in self.tracks:
+            track.kf.x[:3, 0] = rotation @ track.kf.x[:3, 0] + translation
+            block = track.kf.P[:3, :3]
+            track.kf.P[:3, :3] = rotation @ block @ rotation.T
+
+    def step(
+        self,
+        measurements: np.ndarray,
+        sensor_from_map: np.ndarray,
+        in_view: np.ndarray,
+        t: int,
+    ) -> StepResult:
+        """One scan: `measurements` K x 5 m_k in the map frame (NDVI NaN when unknown),
+        `sensor_from_map` the LiDAR frame now, `in_view` one bool per track (who could be
+        seen). Returns one Decision per measurement, in order."""
+        cfg = self.config
+        active = [tr for tr, seen in zip(self.tracks, in_view, strict=True) if seen]
+        # Predict the trees that can be seen, once per scan (F = I, Q = q I): standing
+        # trees do not move in the map frame; their uncertainty grows.
+        for track in active:
+            track.kf.predict()
+        k, m = len(measurements), len(active)
+        p_max = np.full(k, np.nan)
+        entropy = np.full(k, np.nan)
+        best = np.full(k, -1)
+        if k and m:
+            best, p_max, entropy = self._gate(measurements, active, sensor_from_map)
+        associate = (best >= 0) & (p_max > cfg.th_p) & (entropy < cfg.th_h)
+
+        # Each tree takes at most one cluster per scan: the likeliest (ties: the first).
+        # The others are dropped, not made new trees: a second cluster that looks like a
+        # known tree is a piece of it (a split crown), not a tree of its own.
+        taken: dict[int, int] = {}
+        for index in np.argsort(-np.where(associate, p_max, -np.inf), kind="stable"):
+            if associate[index] and best[index] not in taken:
+                taken[int(best[index])] = int(index)
+        decisions: list[Decision | None] = [None] * k
+        for j, index in taken.items():
+            track = active[j]
+            self._update(track, measurements[index], t)
+            decisions[index] = Decision(track.tree_id, "updated", p_max[index], entropy[index])
+        # New trees after the loop: clusters of one scan are distinct by construction,
+        # so a tree born in this scan is no candidate for its siblings.
+        for index in range(k):
+            if decisions[index] is not None:
+                continue
+            if associate[index]:
+                tree_id = active[int(best[index])].tree_id
+                decisions[index] = Decision(tree_id, "duplicate", p_max[index], entropy[index])
+                continue
+            track = self._create(measurements[index], t)
+            decisions[index] = Decision(track.tree_id, "created", p_max[index], entropy[index])
+        # Decisions name the trees that remain: a tree started here and merged into an
+        # older one at once reads "merged" with the older tree's id.
+        merged = self._merge(in_view)
+        alias = {absorbed: kept for kept, absorbed in merged}
+        for index, d in enumerate(decisions):
+            if d.tree_id in alias:
+                outcome = "merged" if d.outcome == "created" else d.outcome
+                decisions[index] = Decision(alias[d.tree_id], outcome, d.p_max, d.entropy)
+        return StepResult(decisions, m, merged)
+
+    def _gate(self, measurements, active, sensor_from_map):
+        cfg = self.config
+        states = np.array([tr.state for tr in active])
+        rotation, translation = sensor_from_map[:3, :3], sensor_from_map[:3, 3]
+        measured_sensor = measurements[:, :3] @ rotation.T + translation
+        predicted_sensor = states[:, :3] @ rotation.T + translation
+        innovation = normalised_innovation(
+            np.nan_to_num(measurements), states, measured_sensor, predicted_sensor, cfg
+        )
+        used = np.ones(innovation.shape, dtype=bool)
+        has_tree_ndvi = np.array([tr.has_ndvi for tr in active])
+        used[:, :, NDVI] = np.isfinite(measurements[:, NDVI])[:, None] & has_tree_ndvi[None, :]
+        S = np.array([tr.kf.P for tr in active]) + cfg.r * np.eye(DIM)  # H P H^T + R, H = I
+        log_p = -cfg.prob_scale * mahalanobis(innovation, S, used)
+        best = np.argmax(log_p, axis=1)
+        p_max = np.exp(log_p[np.arange(len(best)), best])
+        return best, p_max, normalised_entropy(log_p)
+
+    def _create(self, m: np.ndarray, t: int) -> Track:
+        from filterpy.kalman import KalmanFilter
+
+        cfg = self.config
+        kf = KalmanFilter(dim_x=DIM, dim_z=DIM)
+        has_ndvi = bool(np.isfinite(m[NDVI]))
+        kf.x = np.nan_to_num(m).reshape(DIM, 1).astype(float)
+        kf.P = np.eye(DIM) * cfg.p0
+        kf.F = np.eye(DIM)
+        kf.H = np.eye(DIM)
+        kf.Q = np.eye(DIM) * cfg.q
+        kf.R = np.eye(DIM) * cfg.r
+        track = Track(self._next_id, kf, has_ndvi, t, t)
+        self._next_id += 1
+        self.tracks.append(track)
+        return track
+
+    def _update(self, track: Track, m: np.ndarray, t: int) -> None:
+        cfg = self.config
+        measured = np.isfinite(m)
+        if measured[NDVI] and not track.has_ndvi:
+            # First NDVI for a tree started without one: that component starts now.
+            track.kf.x[NDVI, 0] = m[NDVI]
+            track.kf.P[NDVI, :] = track.kf.P[:, NDVI] = 0.0
+            track.kf.P[NDVI, NDVI] = cfg.p0
+            track.has_ndvi = True
+            measured[NDVI] = False
+        if measured.all():
+            track.kf.update(m)
+        else:  # a missing component is not measured: H and R keep the measured rows only
+            H = np.eye(DIM)[measured]
+            track.kf.update(m[measured].reshape(-1, 1), R=np.eye(len(H)) * cfg.r, H=H)
+        track.observations += 1
+        track.last_seen = t
+
+    def _merge(self, in_view: np.ndarray) -> list[tuple[int, int]]:
+        """Trees in view closer than merge_distance_m (x-y) are one: the older (lower id)
+        keeps its id and takes the newer's state if that was seen more recently."""
+        limit = self.config.merge_distance_m
+        if limit <= 0 or len(self.tracks) < 2:
+            return []
+        view = np.ones(len(self.tracks), dtype=bool)  # trees born this scan: in view
+        view[: len(in_view)] = in_view
+        index = np.flatnonzero(view)
+        xy = self.positions()[index, :2]
+        gap = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+        close = np.argwhere(np.triu(gap < limit, k=1))
+        if len(close) == 0:
+            return []
+        merged, gone = [], set()
+        for a, b in close:  # row-major: by the older tree, then the newer
+            if a in gone or b in gone:
+                continue
+            keep, drop = self.tracks[index[a]], self.tracks[index[b]]
+            if float(np.hypot(*(keep.state[:2] - drop.state[:2]))) >= limit:
+                continue  # `keep` took another tree's state above and moved away
+            if drop.last_seen > keep.last_seen or (
+                drop.last_seen == keep.last_seen and drop.observations > keep.observations
+            ):
+                keep.kf, keep.has_ndvi = drop.kf, drop.has_ndvi
+            keep.observations += drop.observations
+            keep.first_seen = min(keep.first_seen, drop.first_seen)
+            keep.last_seen = max(keep.last_seen, drop.last_seen)
+            merged.append((keep.tree_id, drop.tree_id))
+            gone.add(b)
+        dropped = {int(index[b]) for b in gone}
+        self.tracks = [tr for i, tr in enumerate(self.tracks) if i not in dropped]
+        return merged

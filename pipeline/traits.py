@@ -1,0 +1,236 @@
+"""Tree width and height, two ways on the same clusters.
+
+`paper` (the paper, Sec. III-C): height by the top-ring rule, width by 10 z-slices and
+the farthest pair in each, both "keep the maximum" over scans.
+
+`robust` (ours): each tree's returns accumulated in the world frame over scans on a
+bounded voxel grid, counting the scans that hit each cell; width and height are
+measured on the cells seen in several scans. A stray return (mixed pixel, dust, a leaf
+blown out) moves a maximum for good but is seen once; the accumulated cloud joins the
+views of every side the robot passed, where one scan sees only its near half; a piece of
+a neighbour's crown is cut off by the mapper (Voronoi cut between tracked trees) before
+it is added. Percentiles were tried first and cut real crown: the crown outline is
+sampled thinly (grazing rays), so its last percent is real (docs/pipeline.md).
+
+The definitions match `sim.orchard.measure_truth`: height = top of the tree above the
+ground at the tree, width = the largest horizontal distance between two of its points.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.config import TraitsConfig
+
+# Bearings for the per-slice upper bound: a set's true diameter D is at most its largest
+# extent over K bearings divided by cos(pi / 2K).
+_BEARINGS = 16
+_ANGLES = np.arange(_BEARINGS) * math.pi / _BEARINGS
+_DIRECTIONS = np.stack([np.cos(_ANGLES), np.sin(_ANGLES)])
+_BOUND = 1.0 / math.cos(math.pi / (2 * _BEARINGS))
+
+
+def slice_width(points: np.ndarray, slices: int = 10, floor: float = 0.0) -> float:
+    """The paper's width of one cluster: cut it into `slices` equal z-slices, take the
+    farthest pair of points in each (3D distance), return the largest; or `floor` when
+    no slice is wider than that (a kept maximum: such slices are not measured).
+
+    The farthest pair of a slice is found among the vertices of its x-y convex hull (a
+    slice is a tenth of the tree: the pair's height difference changes the distance by
+    at most slice_height^2 / (2 width), ~1 cm on a citrus crown, and it is included).
+    Slices are visited widest bound first and skipped once their bound (the extent over
+    16 bearings, scaled up to the worst case, with the slice height) cannot win."""
+    import cv2
+
+    if len(points) < 2:
+        return floor
+    z = points[:, 2]
+    low = float(z.min())
+    span = max(float(z.max()) - low, 1e-9)
+    index = np.minimum(((z - low) * (slices / span)).astype(np.int64), slices - 1)
+    order = np.argsort(index, kind="stable")
+    ordered = points[order]
+    counts = np.bincount(index, minlength=slices)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    filled = np.flatnonzero(counts >= 2)
+    if len(filled) == 0:
+        return floor
+    projected = ordered[:, :2] @ _DIRECTIONS
+    # Each segment runs to the next filled slice's start, so it may also hold the lone
+    # point of a slice in between: the bound can only grow, it stays an upper bound.
+    high = np.maximum.reduceat(projected, starts[filled], axis=0)
+    low_p = np.minimum.reduceat(projected, starts[filled], axis=0)
+    bound = np.sqrt(((high - low_p).max(axis=1) * _BOUND) ** 2 + (span / slices) ** 2)
+    best = floor * floor
+    for k in np.argsort(-bound, kind="stable"):
+        if bound[k] ** 2 <= best:
+            break
+        start = starts[filled[k]]
+        members = ordered[start : start + counts[filled[k]]]
+        xy = np.ascontiguousarray(members[:, :2], dtype=np.float32)
+        vertices = members[cv2.convexHull(xy, returnPoints=False).ravel()]
+        gaps = vertices[:, None, :] - vertices[None, :, :]
+        best = max(best, float(np.einsum("ijk,ijk->ij", gaps, gaps).max()))
+    return math.sqrt(best)
+
+
+class PaperTraits:
+    """Per tree: the top ring so far, and the largest height and width registered."""
+
+    method = "paper"
+
+    def __init__(self, config: TraitsConfig):
+        self.config = config
+        self.top_ring: int | None = None
+        self.height = float("nan")
+        self.width = float("nan")
+
+    def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
+        """One cluster of this tree (points in `base`, ground height under it in `base`)."""
+        if len(points_base) == 0:
+            return
+        # Height: when the ring of the topmost return changes (and on the first sight),
+        # register the top's height above the ground; keep the largest.
+        top = int(np.argmax(points_base[:, 2]))
+        if self.top_ring is None or int(ring[top]) != self.top_ring:
+            self.top_ring = int(ring[top])
+            self.height = _max(self.height, float(points_base[top, 2] - ground_z_base))
+        # Width: the widest slice of this cluster; keep the largest over scans (slices that
+        # cannot beat the kept maximum are not measured).
+        floor = 0.0 if math.isnan(self.width) else self.width
+        self.width = _max(self.width, slice_width(points_base, self.config.slices, floor))
+
+    def absorb(self, other: PaperTraits) -> None:
+        """Another track of the same tree merged into this one."""
+        self.height = _max(self.height, other.height)
+        self.width = _max(self.width, other.width)
+
+    def centre(self) -> np.ndarray | None:
+        return None  # the paper reports the Kalman state
+
+
+def _max(a: float, b: float) -> float:
+    return b if math.isnan(a) else max(a, b)
+
+
+class RobustTraits:
+    """Per tree: its returns in the world frame on a `voxel_m` grid, each cell with the
+    first return that fell in it and the number of scans that hit it; and the ground
+    height under the tree from every scan (the median is used).
+
+    Only cells hit in at least `min_hits` scans count: a leaf surface is hit again and
+    again as the robot passes, a stray return (a mixed pixel at a crown edge, dust, a
+    leaf blown out for a moment) once. Width is then the largest horizontal extent of
+    the counted cells, height the top one above the ground. Memory is bounded: past
+    `max_points` cells the grid coarsens (cell x 2, hits summed)."""
+
+    method = "robust"
+
+    def __init__(self, config: TraitsConfig):
+        self.config = config
+        self.voxel = config.voxel_m
+        self._keys = np.zeros(0, dtype=np.int64)
+        self._hits = np.zeros(0, dtype=np.int64)
+        self._points = np.zeros((0, 3))
+        self._pending: list[tuple[np.ndarray, np.ndarray]] = []
+        self._pending_count = 0
+        self._ground: list[float] = []
+        self._cache: tuple[float, float, np.ndarray] | None = None
+
+    def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
+        """One cluster of this tree: its returns in the world frame (already cut to this
+        tree where a neighbour is near) and the ground height under it (world z)."""
+        if points_world is None or len(points_world) == 0:
+            return
+        points_world = np.asarray(points_world, dtype=float)
+        keys, first = np.unique(_voxel_keys(points_world, self.voxel), return_index=True)
+        self._pending.append((keys, points_world[first]))  # one hit per cell per scan
+        self._pending_count += len(keys)
+        if ground_world is not None and math.isfinite(ground_world):
+            self._ground.append(float(ground_world))
+            if len(self._ground) > 400:  # a bounded, recent sample of the ground
+                self._ground = self._ground[-200:]
+        self._cache = None
+        # Fold pending cells in once they outnumber the grid: amortised O(n log n).
+        if self._pending_count > max(len(self._keys), 5000):
+            self._consolidate()
+
+    def absorb(self, other: RobustTraits) -> None:
+        """Another track of the same tree merged into this one."""
+        other._consolidate()
+        points, hits = other.cells()
+        keys = _voxel_keys(points, self.voxel)
+        # Its cells with their hits: the same cell in both sums its scans.
+        self._pending.append((np.repeat(keys, hits), np.repeat(points, hits, axis=0)))
+        self._pending_count += int(hits.sum())
+        self._ground.extend(other._ground)
+        self._cache = None
+        self._consolidate()
+
+    def cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """(first return of each cell, scans that hit it)."""
+        self._consolidate()
+        return self._points, self._hits
+
+    def _consolidate(self) -> None:
+        if not self._pending:
+            return
+        keys = np.concatenate([self._keys, *(k for k, _ in self._pending)])
+        points = np.vstack([self._points, *(p for _, p in self._pending)])
+        hits = np.concatenate([self._hits, np.ones(self._pending_count, dtype=np.int64)])
+        self._pending, self._pending_count = [], 0
+        while True:
+            # First return per cell in arrival order (deterministic); hits summed.
+            unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+            hits = np.bincount(inverse.ravel(), weights=hits).astype(np.int64)
+            keys, points = unique, points[first]
+            if len(keys) <= self.config.max_points:
+                break
+            self.voxel *= 2.0
+            keys = _voxel_keys(points, self.voxel)
+        self._keys, self._hits, self._points = keys, hits, points
+
+    def _measure(self) -> tuple[float, float, np.ndarray]:
+        if self._cache is None:
+            points, hits = self.cells()
+            seen = points[hits >= self.config.min_hits]
+            if len(seen) < 2:
+                self._cache = (float("nan"), float("nan"), np.full(2, np.nan))
+            else:
+                ground = float(np.median(self._ground)) if self._ground else 0.0
+                height = float(seen[:, 2].max() - ground)
+                width, centre = caliper(seen[:, :2], self.config.directions)
+                self._cache = (width, height, centre)
+        return self._cache
+
+    @property
+    def width(self) -> float:
+        return self._measure()[0]
+
+    @property
+    def height(self) -> float:
+        return self._measure()[1]
+
+    def centre(self) -> np.ndarray | None:
+        centre = self._measure()[2]
+        return centre if np.isfinite(centre).all() else None
+
+
+def caliper(xy: np.ndarray, directions: int) -> tuple[float, np.ndarray]:
+    """Largest horizontal extent of the points over `directions` bearings in [0, pi), and
+    the centre of their extents along x and y."""
+    angles = np.arange(directions) * math.pi / directions
+    projected = xy @ np.stack([np.cos(angles), np.sin(angles)])
+    extents = projected.max(axis=0) - projected.min(axis=0)
+    return float(extents.max()), (xy.min(axis=0) + xy.max(axis=0)) / 2
+
+
+def _voxel_keys(xyz: np.ndarray, size: float) -> np.ndarray:
+    cells = np.floor(xyz / size).astype(np.int64) + (1 << 20)
+    return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+
+
+def new_traits(config: TraitsConfig) -> PaperTraits | RobustTraits:
+    return PaperTraits(config) if config.method == "paper" else RobustTraits(config)

@@ -1,0 +1,355 @@
+"""TreeMapper end to end on the digital twin: VLP-16 packets emulated along a path through
+an orchard of known trees, decoded by our batcher, a Survey3N frame rendered per scan,
+and exact poses from the path in `odom`. Every tree must be found once, where it stands,
+with foliage NDVI; and the edge cases: first tree, one tree, touching crowns, nothing
+but ground, an empty scan, no frame, no pose, a heading other than east."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import numpy as np
+import pytest
+
+from drivers.calibration import Calibration, CameraModel, load_calibration
+from drivers.records import POINT_DTYPE, Frame, Pose, Scan
+from drivers.velodyne.batcher import ScanBatcher
+from pipeline.config import MapperConfig, TraitsConfig
+from pipeline.mapper import ScanResult, TrackedTree, TreeMapper
+from pipeline.tracking import Motion
+from sim.camera import FOLIAGE, Survey3Emulator
+from sim.lidar import Scene, Vlp16Emulator
+from sim.orchard import Ground, TreeSpec, TreeTruth, grid_orchard, ground_mesh, measure_truth
+from sim.orchard import tree_mesh as make_tree
+from tests.conftest import FIXTURES
+
+CALIBRATION = load_calibration(FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json")
+LATENCY_NS = 200_000  # host receive time = device time + this, in the emulated stream
+
+
+def small_camera(calibration: Calibration, factor: int = 4) -> Calibration:
+    """The CitrusFarm Survey3N at 1/4 of its resolution (same field of view and lens,
+    320 x 180): a frame per scan renders in ~20 ms instead of ~0.3 s."""
+    c = calibration.camera
+    k = c.K.copy()
+    k[:2] /= factor
+    camera = CameraModel(c.width // factor, c.height // factor, k, c.dist, c.channels)
+    return dataclasses.replace(calibration, camera=camera)
+
+
+@dataclasses.dataclass(frozen=True)
+class Drive:
+    scans: list[Scan]
+    poses: list[Pose]  # base_footprint in odom at each scan's middle, exact
+    frames: list[Frame]  # one per scan (empty without a camera)
+    truth: list[TreeTruth]
+    calibration: Calibration
+
+
+def drive(specs, *, start, heading, speed, seconds, frames=False, seed=0, ground=None) -> Drive:
+    """Emulate a straight drive at constant speed and heading past `specs`."""
+    rng = np.random.default_rng(seed)
+    ground = ground or Ground()
+    scene = Scene()
+    scene.add(*ground_mesh(ground, (-45, 45), (-45, 45)), label=0)
+    truth = []
+    for i, spec in enumerate(specs):
+        vertices, triangles = make_tree(spec, ground, rng)
+        scene.add(vertices, triangles, label=i + 1)
+        truth.append(measure_truth(spec, vertices, ground))
+    c, s = math.cos(heading), math.sin(heading)
+
+    def path(t):
+        travelled = speed * t / 1e9
+        x, y = start[0] + c * travelled, start[1] + s * travelled
+        return x, y, np.zeros(np.shape(t)), np.full(np.shape(t), heading)
+
+    calibration = small_camera(CALIBRATION)
+    camera = Survey3Emulator(scene, calibration, rng=rng) if frames else None
+    batcher, scans, poses, images = ScanBatcher(), [], [], []
+    lidar = Vlp16Emulator(scene, calibration.T_base_lidar, rng=rng)
+    for t_device, payload in lidar.packets(path, 0, int(seconds * 1e9)):
+        scan = batcher.push(payload, t_device + LATENCY_NS)
+        if scan is None or not scan.complete:
+            continue
+        t_mid = scan.t_host - (scan.t_end - scan.t_start) // 2
+        x, y, _, yaw = (float(v) for v in path(np.array(t_mid - LATENCY_NS)))
+        scans.append(scan)
+        poses.append(Pose(t_mid, x, y, yaw, np.eye(3) * 1e-4, "odom"))
+        if camera is not None:
+            world_from_base = np.eye(4)
+            world_from_base[:2, :2] = [[c, -s], [s, c]]
+            world_from_base[:2, 3] = (x, y)
+            images.append(Frame(camera.jpeg(world_from_base), t_mid, t_mid))
+    return Drive(scans, poses, images, truth, calibration)
+
+
+@functools.cache
+def grid_drive() -> Drive:
+    """The paper's straight case: a 2 x 3 grid of citrus trees 5 m apart (rows at y = 0
+    and y = 5, trees at x = 0, 5, 10), the robot between the rows at 0.5 m/s for 20 s,
+    from 9.5 m before the front trees (their tops in the top ring's view) to beside them.
+    The back trees are seen only from 9.5-15 m, mostly behind the middle ones."""
+    specs = grid_orchard(2, 3, 5.0, 5.0, np.random.default_rng(1))
+    return drive(specs, start=(-9.5, 2.5), heading=0.0, speed=0.5, seconds=20.0, frames=True)
+
+
+@functools.cache
+def mapped(method: str = "paper") -> tuple[TreeMapper, tuple[ScanResult, ...]]:
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(traits=TraitsConfig(method=method)), data.calibration)
+    results = tuple(
+        mapper.process(s, f, p) for s, f, p in zip(data.scans, data.frames, data.poses, strict=True)
+    )
+    return mapper, results
+
+
+def match(trees: list[TrackedTree], truth: list[TreeTruth], radius: float = 1.5):
+    """Each tree to the nearest true tree within `radius` (x-y): {truth id: [trees]}, and
+    the trees near none."""
+    found: dict[str, list[TrackedTree]] = {t.tree_id: [] for t in truth}
+    stray = []
+    for tree in trees:
+        gaps = [math.hypot(tree.x - t.x, tree.y - t.y) for t in truth]
+        best = int(np.argmin(gaps))
+        (found[truth[best].tree_id] if gaps[best] < radius else stray).append(tree)
+    return found, stray
+
+
+def assert_each_found_once(trees, truth, reach=None):
+    """No strays; every true tree found exactly once (those farther than `reach` m from
+    the path's end, never in the crop box, at most once)."""
+    found, stray = match(trees, truth)
+    assert stray == []
+    for t in truth:
+        count = len(found[t.tree_id])
+        assert count <= 1, t.tree_id
+        if reach is None or math.hypot(t.x - reach[0], t.y - reach[1]) < reach[2]:
+            assert count == 1, t.tree_id
+
+
+def ndvi_of(bands) -> float:
+    red, _, nir = bands
+    return (nir - red) / (nir + red)
+
+
+# --- the straight drive past the 2 x 3 grid --------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["paper", "robust"])
+def test_every_tree_is_found_once_where_it_stands(method):
+    data = grid_drive()
+    assert len(data.scans) >= 195  # ~20 s at 10 Hz
+    mapper, _ = mapped(method)
+    trees = mapper.trees()
+    found, stray = match(trees, data.truth)
+    assert stray == []
+    assert {k: len(v) for k, v in found.items()} == {t.tree_id: 1 for t in data.truth}
+    # Position: the paper reports the Kalman state, the centroid of the visible (near)
+    # face, which leans towards the robot; robust the centre of the accumulated cloud.
+    limit = {"paper": 0.8, "robust": 0.6}[method]
+    for truth in data.truth:
+        tree = found[truth.tree_id][0]
+        assert math.hypot(tree.x - truth.x, tree.y - truth.y) < limit, truth.tree_id
+        assert tree.frame == "odom" and tree.traits == method
+        assert tree.observations > 100
+        assert data.poses[0].t <= tree.first_seen < tree.last_seen <= data.poses[-1].t
+
+
+def test_trees_carry_the_ndvi_of_foliage():
+    mapper, results = mapped("paper")
+    foliage = ndvi_of(FOLIAGE)
+    assert all(r.ndvi == "ok" for r in results)
+    found, _ = match(mapper.trees(), grid_drive().truth)
+    for truth in grid_drive().truth:
+        (tree,) = found[truth.tree_id]
+        if truth.x < 7:  # front and middle: seen whole, near
+            assert tree.ndvi == pytest.approx(foliage, abs=0.04)
+        else:  # back: seen past the middle crowns, its outline mixes in soil and sky
+            assert 0.55 < tree.ndvi < foliage
+    with_ndvi = [c for r in results for c in r.clusters if np.isfinite(c.ndvi)]
+    assert len(with_ndvi) > 300  # the camera sees forward: clusters ahead have NDVI
+
+
+def test_scan_results_tell_what_happened_to_each_cluster():
+    _, results = mapped("paper")
+    first = results[0]
+    assert first.frame == "odom" and first.plane.fitted
+    # The first trees (nothing to compare with); a piece of a crown split off by the
+    # clustering starts a tree that the merge folds into its own at once.
+    assert {c.outcome for c in first.clusters} <= {"created", "merged"}
+    assert all(math.isnan(c.p_max) for c in first.clusters)
+    assert first.created == [c.tree_id for c in first.clusters if c.outcome == "created"]
+    assert len(first.created) >= 4
+    later = results[100]
+    assert later.updated and all(c.tree_id is not None for c in later.clusters)
+    for c in later.clusters:
+        if c.outcome == "updated":
+            assert c.p_max > 0.5 and c.entropy < 0.8
+        assert c.hull_volume > 0 and c.num_points >= 10
+    # About a third of the clusters fail the paper's gate (a 7 % change in the count of
+    # points is enough) and start a tree that the merge folds back at once (docs).
+    outcomes = [c.outcome for r in results for c in r.clusters]
+    assert outcomes.count("updated") > 1.5 * outcomes.count("merged")
+    assert outcomes.count("created") < 20
+    known = {t.tree_id for t in mapped("paper")[0].trees()}
+    ids = {c.tree_id for r in results for c in r.clusters if c.outcome != "duplicate"}
+    assert known <= ids
+    for r in results:  # every id a scan reports exists after that scan (merges resolved)
+        assert set(r.created) | set(r.updated) >= {c.tree_id for c in r.clusters}
+    # Centroids are reported in odom: each lies within a crown of a true tree.
+    truth = grid_drive().truth
+    for r in results[::20]:
+        for c in r.clusters:
+            gap = min(math.hypot(c.centroid[0] - t.x, c.centroid[1] - t.y) for t in truth)
+            assert gap < 1.6
+
+
+def test_same_input_same_output():
+    data = grid_drive()
+
+    def run():
+        mapper = TreeMapper(MapperConfig(), data.calibration)
+        for s, f, p in zip(data.scans[:40], data.frames[:40], data.poses[:40], strict=True):
+            mapper.process(s, f, p)
+        return mapper.trees()
+
+    assert run() == run()
+
+
+def test_without_a_camera_the_same_trees_without_ndvi():
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    results = [mapper.process(s, None, p) for s, p in zip(data.scans, data.poses, strict=True)]
+    assert {r.ndvi for r in results} == {"no_frame"}
+    found, stray = match(mapper.trees(), data.truth)
+    assert stray == [] and all(len(v) == 1 for v in found.values())
+    assert all(t.ndvi is None for t in mapper.trees())
+    # A frame given to a mapper whose calibration has no camera is set aside, not fatal.
+    blind = TreeMapper(MapperConfig(), Calibration())
+    assert blind.process(data.scans[0], data.frames[0], data.poses[0]).ndvi == "no_camera"
+
+
+@pytest.mark.parametrize("motion", [None, Motion(0.5, 0.0)])
+def test_without_poses_trees_are_held_in_the_lidar_frame(motion):
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    for scan in data.scans[:80]:
+        result = mapper.process(scan, None, None, motion=motion)
+    assert result.frame == "lidar"
+    trees = mapper.trees()
+    assert all(t.frame == "lidar" for t in trees)
+    # Positions are in the last scan's LiDAR frame: put them in odom to compare.
+    pose, lidar = data.poses[79], data.calibration.T_base_lidar[:3, 3]
+    in_odom = [dataclasses.replace(t, x=t.x + pose.x + lidar[0], y=t.y + pose.y) for t in trees]
+    assert_each_found_once(in_odom, data.truth, reach=(pose.x, pose.y, 14.0))
+    assert len(in_odom) >= 4
+
+
+def test_robust_traits_without_poses_follow_the_motion():
+    """Without poses the robust traits accumulate where the motion says the first scan's
+    LiDAR frame is: with the drive's true motion they match the run with poses."""
+    data = grid_drive()
+    config = MapperConfig(traits=TraitsConfig(method="robust"))
+    with_poses = TreeMapper(config, data.calibration)
+    dead_reckoned = TreeMapper(config, data.calibration)
+    for scan, pose in zip(data.scans[:80], data.poses[:80], strict=True):
+        with_poses.process(scan, None, pose)
+        dead_reckoned.process(scan, None, None, motion=Motion(0.5, 0.0))
+    pose, lidar = data.poses[79], data.calibration.T_base_lidar[:3, 3]
+    for a, b in zip(with_poses.trees(), dead_reckoned.trees(), strict=True):
+        assert b.width_m == pytest.approx(a.width_m, rel=0.03)
+        assert b.height_m == pytest.approx(a.height_m, abs=0.05)
+        assert b.x + pose.x + lidar[0] == pytest.approx(a.x, abs=0.1)
+        assert b.y + pose.y == pytest.approx(a.y, abs=0.1)
+
+
+def test_a_run_keeps_one_frame():
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    mapper.process(data.scans[0], None, data.poses[0])
+    with pytest.raises(ValueError, match="odom"):
+        mapper.process(data.scans[1], None, dataclasses.replace(data.poses[1], frame="utm"))
+    with pytest.raises(ValueError, match="no pose"):
+        mapper.process(data.scans[1], None, None)
+
+
+def test_heading_north_maps_the_same_trees():
+    """The grid turned by 90 deg and driven north (yaw = pi/2): a wrong rotation would
+    put every tree on the wrong side of the path."""
+    specs = [
+        dataclasses.replace(s, x=s.y, y=s.x)
+        for s in grid_orchard(2, 3, 5.0, 5.0, np.random.default_rng(1))
+    ]
+    data = drive(specs, start=(2.5, -9.5), heading=math.pi / 2, speed=0.5, seconds=8.0, seed=5)
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    for scan, pose in zip(data.scans, data.poses, strict=True):
+        mapper.process(scan, None, pose)
+    last = data.poses[-1]
+    assert_each_found_once(mapper.trees(), data.truth, reach=(last.x, last.y, 14.0))
+    assert len(mapper.trees()) >= 4
+
+
+# --- edge cases -------------------------------------------------------------------------
+
+
+def test_one_tree_is_one_tree_from_the_first_scan():
+    spec = TreeSpec("T1", "1", 5.0, 2.5, 0.45, 0.08, 1.35, 1.1)
+    data = drive([spec], start=(0.0, 0.0), heading=0.0, speed=0.0, seconds=1.0, seed=3)
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    results = [mapper.process(s, None, p) for s, p in zip(data.scans, data.poses, strict=True)]
+    assert [c.outcome for c in results[0].clusters] == ["created"]
+    assert all([c.outcome for c in r.clusters] == ["updated"] for r in results[1:])
+    (tree,) = mapper.trees()
+    assert tree.tree_id == 1 and tree.observations == len(data.scans) >= 8
+    assert math.hypot(tree.x - 5.0, tree.y - 2.5) < 1.35
+
+
+def test_touching_crowns_are_one_cluster_and_crowns_apart_are_two():
+    """The paper's Euclidean clustering cannot split crowns that touch: within the
+    cluster tolerance (0.5 m) two trees are one cluster, and the pipeline reports one
+    tree spanning both. A gap wider than the tolerance gives two trees, each measured
+    alone. (A known limitation, docs/pipeline.md.) Seen from 4 m beside the pair."""
+    for gap, expected in ((0.0, 1), (0.8, 2)):
+        specs = [
+            TreeSpec("A", "1", -1.35 - gap / 2, 0.0, 0.45, 0.08, 1.35, 1.1),
+            TreeSpec("B", "1", 1.35 + gap / 2, 0.0, 0.45, 0.08, 1.35, 1.1),
+        ]
+        data = drive(specs, start=(0.0, 4.0), heading=0.0, speed=0.0, seconds=1.0, seed=9)
+        mapper = TreeMapper(MapperConfig(), data.calibration)
+        for scan, pose in zip(data.scans, data.poses, strict=True):
+            mapper.process(scan, None, pose)
+        trees = mapper.trees()
+        assert len(trees) == expected, gap
+        if expected == 1:
+            assert trees[0].width_m > 2 * 2.7 - 0.3
+            assert abs(trees[0].x) < 0.5
+        else:
+            found, stray = match(trees, data.truth)
+            assert stray == [] and all(len(v) == 1 for v in found.values())
+            for truth in data.truth:
+                assert found[truth.tree_id][0].width_m == pytest.approx(truth.width, rel=0.06)
+
+
+def test_an_empty_scan_and_a_ground_only_scan_change_nothing():
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    mapper.process(data.scans[0], data.frames[0], data.poses[0])
+    before = mapper.trees()
+    empty = dataclasses.replace(data.scans[1], points=np.zeros(0, POINT_DTYPE))
+    result = mapper.process(empty, data.frames[1], data.poses[1])
+    assert result.clusters == [] and result.counts["points"] == 0
+    points = data.scans[2].points
+    ground_only = dataclasses.replace(data.scans[2], points=points[points["z"] < -0.25])
+    result = mapper.process(ground_only, data.frames[2], data.poses[2])
+    assert result.clusters == [] and result.counts["cropped"] > 1000
+    # All ground, but for a few green-looking points under crowns: skirt candidates that
+    # touch no cluster and are dropped.
+    assert result.counts["ground"] + result.counts["skirt"] == result.counts["cropped"]
+    assert mapper.trees() == before
+
+
+def test_a_mapper_without_scans_has_no_trees():
+    assert TreeMapper().trees() == []
