@@ -1,0 +1,261 @@
+"""Mapped trees to the outputs: positions in UTM and WGS84, the matching field-map tree,
+and `trees.csv` / `trees.geojson` written atomically (ARCHITECTURE.md, "Outputs").
+
+A mapper's trees live in a world frame: `utm` (after the first fix) or `odom` (mapped
+before the first fix, or kept there through a GNSS outage). `odom` trees are moved to
+UTM with the 3x3 `utm_from_odom` transform of the localizer when one is available (given
+as a matrix, or as a function of the tree's `last_seen` time that returns one or None);
+without it they stay unreferenced (empty position) but are still reported.
+
+Matching: each georeferenced tree is compared with every field-map tree in x-y (UTM);
+pairs closer than the gate are taken greedily from the closest, each map tree and each
+detected tree at most once. A detected tree left without a pair keeps no `field_id`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable, Iterable, Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Protocol, TextIO
+
+import numpy as np
+
+from drivers.records import Tree
+from pipeline.fieldmap import FieldTree
+from pipeline.localization.utm import UtmGrid
+
+DEFAULT_GATE_M = 1.5
+
+CSV_COLUMNS = (
+    "tree_id",
+    "field_id",
+    "row",
+    "easting",
+    "northing",
+    "utm_zone",
+    "lat",
+    "lon",
+    "width_m",
+    "height_m",
+    "ndvi",
+    "observations",
+    "first_seen",
+    "last_seen",
+)
+
+UtmFromOdom = np.ndarray | Callable[[int], np.ndarray | None]
+
+
+class MappedTree(Protocol):
+    """What georeferencing reads from a mapper's tree (`pipeline.mapper.TrackedTree`)."""
+
+    tree_id: Any
+    x: float  # in `frame`
+    y: float
+    frame: str
+    width_m: float
+    height_m: float
+    ndvi: float | None
+    observations: int
+    first_seen: int
+    last_seen: int
+
+
+def georeference(
+    trees: Iterable[MappedTree],
+    grid: UtmGrid | None,
+    field_map: Sequence[FieldTree] = (),
+    utm_from_odom: UtmFromOdom | None = None,
+    gate_m: float = DEFAULT_GATE_M,
+) -> list[Tree]:
+    """`Tree` records, in the order given. `grid` is the run's UTM zone (the localizer's,
+    from the first fix); None when there never was a fix: nothing is referenced then."""
+    trees = list(trees)
+    xy = np.full((len(trees), 2), np.nan)
+    for i, tree in enumerate(trees):
+        position = _utm_xy(tree, grid, utm_from_odom)
+        if position is not None:
+            xy[i] = position
+    field_ids = [None] * len(trees)
+    if grid is not None and field_map:
+        map_xy = np.array([grid.forward(f.lat, f.lon) for f in field_map], dtype=float)
+        for i, j in enumerate(match_nearest(xy, map_xy, gate_m)):
+            field_ids[i] = None if j is None else field_map[j]
+    out = []
+    for tree, (e, n), match in zip(trees, xy, field_ids, strict=True):
+        placed = bool(np.isfinite(e))
+        lat, lon = grid.inverse(e, n) if placed else (None, None)
+        out.append(
+            Tree(
+                tree_id=str(tree.tree_id),
+                easting=float(e) if placed else None,
+                northing=float(n) if placed else None,
+                utm_zone=grid.name if placed else None,
+                lat=lat,
+                lon=lon,
+                width_m=float(tree.width_m),
+                height_m=float(tree.height_m),
+                ndvi=tree.ndvi,
+                observations=int(tree.observations),
+                first_seen=int(tree.first_seen),
+                last_seen=int(tree.last_seen),
+                field_id=match.id if match else None,
+                row=match.row if match else None,
+            )
+        )
+    return out
+
+
+def match_nearest(detected: np.ndarray, mapped: np.ndarray, gate_m: float) -> list[int | None]:
+    """For each detected x-y (NaN = not placed), the index of its map tree or None:
+    pairs within `gate_m`, taken greedily by distance (ties by detected, then map index),
+    each side used at most once."""
+    detected = np.asarray(detected, dtype=float).reshape(-1, 2)
+    mapped = np.asarray(mapped, dtype=float).reshape(-1, 2)
+    result: list[int | None] = [None] * len(detected)
+    if not len(detected) or not len(mapped):
+        return result
+    distance = np.hypot(*(detected[:, None, :] - mapped[None, :, :]).transpose(2, 0, 1))
+    i, j = np.nonzero(distance <= gate_m)  # NaN compares False: unplaced trees never match
+    order = np.lexsort((j, i, distance[i, j]))
+    used = set()
+    for k in order:
+        if result[i[k]] is None and j[k] not in used:
+            result[i[k]] = int(j[k])
+            used.add(j[k])
+    return result
+
+
+def _utm_xy(tree: MappedTree, grid: UtmGrid | None, utm_from_odom) -> np.ndarray | None:
+    p = np.array([tree.x, tree.y], dtype=float)
+    if tree.frame == "utm":
+        if grid is None:
+            raise ValueError(f"tree {tree.tree_id} is in utm but no UTM grid was given")
+        return p
+    if tree.frame != "odom" or grid is None or utm_from_odom is None:
+        return None  # e.g. base_footprint (no pose), or no transform yet
+    T = utm_from_odom(tree.last_seen) if callable(utm_from_odom) else utm_from_odom
+    if T is None:
+        return None
+    T = np.asarray(T, dtype=float)
+    if T.shape != (3, 3):
+        raise ValueError(f"utm_from_odom must be a 3x3 2-D transform, got shape {T.shape}")
+    return (T @ [p[0], p[1], 1.0])[:2]
+
+
+# ---- outputs --------------------------------------------------------------------------
+
+
+def iso_utc(ns: int) -> str:
+    """ISO 8601 UTC with milliseconds, e.g. 2026-11-22T10:15:30.123Z."""
+    seconds, rest = divmod(int(ns), 1_000_000_000)
+    moment = datetime.fromtimestamp(seconds, tz=timezone.utc)
+    return f"{moment:%Y-%m-%dT%H:%M:%S}.{rest // 1_000_000:03d}Z"
+
+
+def csv_row(tree: Tree) -> list[str]:
+    """One trees.csv line's cells, in CSV_COLUMNS order."""
+    return [
+        tree.tree_id,
+        tree.field_id or "",
+        tree.row or "",
+        _number(tree.easting, 3),
+        _number(tree.northing, 3),
+        tree.utm_zone or "",
+        _number(tree.lat, 8),
+        _number(tree.lon, 8),
+        _number(tree.width_m, 3),
+        _number(tree.height_m, 3),
+        _number(tree.ndvi, 4),
+        str(tree.observations),
+        iso_utc(tree.first_seen),
+        iso_utc(tree.last_seen),
+    ]
+
+
+def write_trees_csv(path: str | os.PathLike, trees: Iterable[Tree]) -> None:
+    """trees.csv with exactly CSV_COLUMNS, written atomically (temp file, fsync, rename)."""
+
+    def write(f: TextIO) -> None:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(CSV_COLUMNS)
+        for tree in trees:
+            writer.writerow(csv_row(tree))
+
+    _write_atomically(path, write)
+
+
+def write_trees_geojson(path: str | os.PathLike, trees: Iterable[Tree]) -> None:
+    """trees.geojson: a FeatureCollection of WGS84 Points (null geometry for a tree not
+    yet georeferenced), the trees.csv values as properties; written atomically."""
+
+    def write(f: TextIO) -> None:
+        features = [_feature(tree) for tree in trees]
+        json.dump({"type": "FeatureCollection", "features": features}, f, indent=1)
+        f.write("\n")
+
+    _write_atomically(path, write)
+
+
+def _feature(tree: Tree) -> dict[str, Any]:
+    geometry = None
+    if tree.lat is not None and tree.lon is not None:
+        geometry = {"type": "Point", "coordinates": [round(tree.lon, 8), round(tree.lat, 8)]}
+    properties = {
+        "tree_id": tree.tree_id,
+        "field_id": tree.field_id,
+        "row": tree.row,
+        "easting": _rounded(tree.easting, 3),
+        "northing": _rounded(tree.northing, 3),
+        "utm_zone": tree.utm_zone,
+        "width_m": _rounded(tree.width_m, 3),
+        "height_m": _rounded(tree.height_m, 3),
+        "ndvi": _rounded(tree.ndvi, 4),
+        "observations": tree.observations,
+        "first_seen": iso_utc(tree.first_seen),
+        "last_seen": iso_utc(tree.last_seen),
+    }
+    return {"type": "Feature", "geometry": geometry, "properties": properties}
+
+
+def _number(value: float | None, decimals: int) -> str:
+    if value is None or not math.isfinite(value):
+        return ""
+    return f"{value:.{decimals}f}"
+
+
+def _rounded(value: float | None, decimals: int) -> float | None:
+    if value is None or not math.isfinite(value):
+        return None
+    return round(float(value), decimals)
+
+
+def _write_atomically(path: str | os.PathLike, write: Callable[[TextIO], None]) -> None:
+    """Write to a temp file beside `path`, fsync, rename over `path`, fsync the directory:
+    a reader (or a power cut) sees the old file or the new one, never a part."""
+    target = Path(path)
+    fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with open(fd, "w", encoding="utf-8", newline="") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(temp, 0o644)  # mkstemp makes it 0600
+        os.replace(temp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temp)
+        raise
+    with contextlib.suppress(OSError):  # not every filesystem lets a directory be fsynced
+        directory = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
