@@ -13,7 +13,6 @@ PYTHON ?= $(shell for p in python3.13 python3.12 python3.11 python3.10 python3; 
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-DEMO_CAPTURE := tests/fixtures/vlp16/veloview_vlp16_20hz_strongest.pcap
 DEMO_OUT := out/demo
 
 # Runtime libraries the wheels load (libusb for pyusb, libGL/libEGL/libgomp for open3d and
@@ -24,7 +23,7 @@ SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libgomp1 libsystemd-dev pkg-confi
 .PHONY: help setup system-packages demo test lint bench clean
 
 help:
-	@echo "make demo    set up, then decode a bundled real VLP-16 capture: summary + PCD scans"
+	@echo "make demo    set up, then simulate a drive through the orchard twin and replay it"
 	@echo "make test    set up, then run the whole test suite and the linter"
 	@echo "make bench   run the benchmarks in bench/"
 	@echo "make clean   remove the virtualenv and outputs"
@@ -67,8 +66,8 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: setup
-	$(BIN)/treetraits lidar info $(DEMO_CAPTURE)
-	$(BIN)/treetraits lidar export $(DEMO_CAPTURE) --out $(DEMO_OUT) --full-only
+	$(BIN)/treetraits sim --grid 5x5 --path straight --seed 0 --out $(DEMO_OUT)/survey.mcap
+	$(BIN)/treetraits replay $(DEMO_OUT)/survey.mcap --out $(DEMO_OUT)
 
 test: setup
 	$(BIN)/ruff check .

@@ -23,7 +23,7 @@ CREATE TABLE IF NOT EXISTS trees (
     tree_id TEXT PRIMARY KEY,
     field_id TEXT, row TEXT,
     easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
-    width_m REAL NOT NULL, height_m REAL NOT NULL, ndvi REAL,
+    width_m REAL, height_m REAL, ndvi REAL,  -- NULL until measured
     observations INTEGER NOT NULL, first_seen INTEGER NOT NULL, last_seen INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS observations (

@@ -10,7 +10,7 @@ import argparse
 import sys
 
 from treetraits import __version__
-from treetraits.cli import calibrate, camera, fuse, lidar, nmea, sim
+from treetraits.cli import calibrate, camera, fuse, lidar, nmea, replay, sim
 from treetraits.errors import TreetraitsError
 
 
@@ -30,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.register(commands)
     fuse.register(commands)
     sim.register(commands)
+    replay.register(commands)
     return parser
 
 

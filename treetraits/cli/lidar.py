@@ -159,7 +159,9 @@ def run_export(args: argparse.Namespace) -> int:
                 ["file", "scan", "t_start_ns", "t_end_ns", "points", "complete", "lost_packets"]
             )
             scans = (item for item in reader if isinstance(item, Scan))
-            for number, scan in enumerate(tqdm(scans, unit="scan", desc="export", leave=False)):
+            for number, scan in enumerate(
+                tqdm(scans, unit="scan", desc="export", leave=False, disable=None)
+            ):
                 if pending is not None:
                     written += _export_one(args.out, index, number - 1, pending)
                 pending = None if (args.full_only and number == 0) else scan

@@ -107,7 +107,7 @@ def run_sim(args: argparse.Namespace) -> int:
         ),
     )
     calibration = load_calibration(args.calibration) if args.calibration else None
-    with tqdm(total=100, desc="sim", unit="%", leave=False) as bar:
+    with tqdm(total=100, desc="sim", unit="%", leave=False, disable=None) as bar:
 
         def progress(fraction: float) -> None:
             bar.update(round(fraction * 100) - bar.n)

@@ -1,0 +1,112 @@
+"""`treetraits replay` end to end on a simulated survey: every tree found once and matched
+to its field-map entry, the outputs of the contract written, and the same outputs twice."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sqlite3
+
+import pytest
+
+from pipeline.replay import ReplayOptions, run_replay
+from sim.run import SurveySettings, simulate_survey
+from treetraits.cli import main
+
+CSV_COLUMNS = [
+    "tree_id",
+    "field_id",
+    "row",
+    "easting",
+    "northing",
+    "utm_zone",
+    "lat",
+    "lon",
+    "width_m",
+    "height_m",
+    "ndvi",
+    "observations",
+    "first_seen",
+    "last_seen",
+]
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    out = tmp_path_factory.mktemp("survey") / "survey.mcap"
+    return simulate_survey(out, SurveySettings(rows=2, goal=13.0, seed=3))
+
+
+def truth_rows(survey):
+    with open(survey.truth_csv) as f:
+        return {r["tree_id"]: r for r in csv.DictReader(f)}
+
+
+def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
+    assert main(["replay", str(survey.recording), "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "4 trees (4 on the field map)" in printed
+
+    with open(tmp_path / "trees.csv") as f:
+        reader = csv.DictReader(f)
+        assert reader.fieldnames == CSV_COLUMNS
+        rows = list(reader)
+    truth = truth_rows(survey)
+    assert sorted(r["field_id"] for r in rows) == sorted(truth)  # each once, none extra
+    for row in rows:
+        expected = truth[row["field_id"]]
+        assert row["utm_zone"] == "11N" and row["row"] == expected["row"]
+        gap = math.hypot(
+            float(row["easting"]) - float(expected["easting"]),
+            float(row["northing"]) - float(expected["northing"]),
+        )
+        # The cluster centroid sits on the crown's visible side, towards the robot.
+        assert gap < 0.8
+        assert abs(float(row["width_m"]) / float(expected["width_m"]) - 1) < 0.1
+        assert 0.6 < float(row["ndvi"]) < 0.9  # the twin's foliage reads NDVI 0.75
+        assert row["first_seen"].endswith("Z") and row["first_seen"] < row["last_seen"]
+
+    geojson = json.loads((tmp_path / "trees.geojson").read_text())
+    assert len(geojson["features"]) == 4
+    lon, lat = geojson["features"][0]["geometry"]["coordinates"]
+    assert 33.9 < lat < 34.0 and -117.4 < lon < -117.3
+
+    db = sqlite3.connect(tmp_path / "traits.sqlite")
+    assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    assert db.execute("SELECT COUNT(*) FROM trees").fetchone()[0] == 4
+    scans = db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0]
+    assert scans > 100
+    facts = dict(db.execute("SELECT key, value FROM run"))
+    assert facts["method"] == "paper" and facts["world_frame"] == "utm"
+
+
+def test_same_input_same_outputs(survey, tmp_path):
+    first = run_replay(survey.recording, tmp_path / "a", ReplayOptions())
+    second = run_replay(survey.recording, tmp_path / "b", ReplayOptions())
+    assert first.trees == second.trees
+    assert (tmp_path / "a" / "trees.csv").read_text() == (tmp_path / "b" / "trees.csv").read_text()
+
+
+@pytest.mark.parametrize(("method", "traits"), [("paper", "robust"), ("rph-vlp16", "paper")])
+def test_other_methods_run_on_the_same_survey(survey, tmp_path, method, traits):
+    report = run_replay(survey.recording, tmp_path, ReplayOptions(method=method, traits=traits))
+    assert sorted(t.field_id for t in report.trees if t.field_id) == sorted(truth_rows(survey))
+    assert report.summary["method"] == method
+
+
+def test_bad_options_are_refused(survey, tmp_path):
+    assert main(["replay", str(tmp_path / "missing.mcap"), "--out", str(tmp_path)]) == 2
+    assert (
+        main(
+            [
+                "replay",
+                str(survey.recording),
+                "--out",
+                str(tmp_path),
+                "--nmea",
+                str(survey.truth_csv),
+            ]
+        )
+        == 2
+    )
