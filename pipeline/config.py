@@ -135,6 +135,12 @@ class TrackingConfig:
     # paper's field-map matching collapses them; without a map we merge, keeping the
     # older). 0 turns it off. 1.5 m: half the closest planting distance in citrus (3 m).
     merge_distance_m: float = 1.5
+    # Ours, on top of the paper's gate: a cluster may update a tree only if its x-y
+    # centroid lies within this distance of the tree's predicted centre. Trees do not
+    # move; the paper's relative ("percentage") innovation is loose for far trees and let
+    # a neighbour 5 m away pull a tree over on the twin's 23 m drive, after which the
+    # merge folded two real trees into one. 0 turns it off (the paper exactly).
+    max_association_m: float = 1.5
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,9 @@ class ReplayOptions:
     nmea: Path | None = None  # with a pcap input
     export_every_s: float = 5.0
     match_gate_m: float = 1.5
+    # A tree seen in fewer scans is not reported (a stray cluster at the edge of view,
+    # seen once): at 10 Hz a real tree in range is seen in dozens.
+    min_observations: int = 3
 
 
 @dataclass(frozen=True)
@@ -160,8 +163,9 @@ def run_replay(
 
     def georeferenced() -> list[Tree]:
         localizer = processor.localizer
+        seen = [t for t in mapper.trees() if t.observations >= options.min_observations]
         return georeference(
-            mapper.trees(),
+            seen,
             localizer.grid,
             field_map,
             utm_from_odom=localizer.utm_from_odom,

@@ -179,6 +179,10 @@ class Tracker:
         if k and m:
             best, p_max, entropy = self._gate(measurements, active, sensor_from_map)
         associate = (best >= 0) & (p_max > cfg.th_p) & (entropy < cfg.th_h)
+        if cfg.max_association_m > 0 and k and m:
+            predicted = np.array([tr.state[:2] for tr in active])[np.maximum(best, 0)]
+            jump = np.hypot(*(measurements[:, :2] - predicted).T)
+            associate &= jump < cfg.max_association_m
 
         # Each tree takes at most one cluster per scan: the likeliest (ties: the first).
         # The others are dropped, not made new trees: a second cluster that looks like a

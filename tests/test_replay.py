@@ -35,7 +35,8 @@ CSV_COLUMNS = [
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
     out = tmp_path_factory.mktemp("survey") / "survey.mcap"
-    return simulate_survey(out, SurveySettings(rows=2, goal=13.0, seed=3))
+    # The paper's straight case: 2x3 trees 5 m apart, 23 m driven.
+    return simulate_survey(out, SurveySettings(seed=0))
 
 
 def truth_rows(survey):
@@ -46,7 +47,7 @@ def truth_rows(survey):
 def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
     assert main(["replay", str(survey.recording), "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
-    assert "4 trees (4 on the field map)" in printed
+    assert "6 trees (6 on the field map)" in printed
 
     with open(tmp_path / "trees.csv") as f:
         reader = csv.DictReader(f)
@@ -62,19 +63,20 @@ def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
             float(row["northing"]) - float(expected["northing"]),
         )
         # The cluster centroid sits on the crown's visible side, towards the robot.
-        assert gap < 0.8
+        assert gap < 1.0  # (crown radius 1.35 m: the visible half has its centroid ~0.6-0.9 m in)
         assert abs(float(row["width_m"]) / float(expected["width_m"]) - 1) < 0.1
         assert 0.6 < float(row["ndvi"]) < 0.9  # the twin's foliage reads NDVI 0.75
         assert row["first_seen"].endswith("Z") and row["first_seen"] < row["last_seen"]
 
     geojson = json.loads((tmp_path / "trees.geojson").read_text())
-    assert len(geojson["features"]) == 4
+    assert len(geojson["features"]) == 6
     lon, lat = geojson["features"][0]["geometry"]["coordinates"]
     assert 33.9 < lat < 34.0 and -117.4 < lon < -117.3
 
     db = sqlite3.connect(tmp_path / "traits.sqlite")
     assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
-    assert db.execute("SELECT COUNT(*) FROM trees").fetchone()[0] == 4
+    # The store keeps every tree the mapper made, stray one-scan clusters included.
+    assert db.execute("SELECT COUNT(*) FROM trees").fetchone()[0] >= 6
     scans = db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0]
     assert scans > 100
     facts = dict(db.execute("SELECT key, value FROM run"))
