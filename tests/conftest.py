@@ -23,6 +23,25 @@ VLP16_CAPTURES = [
 ]
 
 
+# trees.csv columns as ARCHITECTURE.md fixes them (restated here, not imported from the code).
+CONTRACT_CSV_COLUMNS = [
+    "tree_id",
+    "field_id",
+    "row",
+    "easting",
+    "northing",
+    "utm_zone",
+    "lat",
+    "lon",
+    "width_m",
+    "height_m",
+    "ndvi",
+    "observations",
+    "first_seen",
+    "last_seen",
+]
+
+
 def reference(name: str) -> dict:
     """The reference facts shipped beside a capture (`*.reference.json`)."""
     return json.loads((VLP16_DIR / f"{name}.reference.json").read_text())

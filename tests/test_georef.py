@@ -26,6 +26,7 @@ from pipeline.georef import (
 from pipeline.localization import LocalizationConfig, Localizer
 from pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw
 from pipeline.mapper import TrackedTree
+from tests.conftest import CONTRACT_CSV_COLUMNS
 from treetraits.errors import ConfigError
 
 GRID = UtmGrid.for_zone(11, north=True)  # a grove near Riverside, California
@@ -328,22 +329,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
     write_trees_csv(path, trees)
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
-    assert rows[0] == [
-        "tree_id",
-        "field_id",
-        "row",
-        "easting",
-        "northing",
-        "utm_zone",
-        "lat",
-        "lon",
-        "width_m",
-        "height_m",
-        "ndvi",
-        "observations",
-        "first_seen",
-        "last_seen",
-    ]
+    assert rows[0] == CONTRACT_CSV_COLUMNS
     assert tuple(rows[0]) == CSV_COLUMNS
     lat, lon = GRID.inverse(E0 + 0.25, N0 - 0.1)
     first = "2026-11-22T10:15:30.000Z"

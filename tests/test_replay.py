@@ -12,24 +12,8 @@ import pytest
 
 from pipeline.replay import ReplayOptions, run_replay
 from sim.run import SurveySettings, simulate_survey
+from tests.conftest import CONTRACT_CSV_COLUMNS
 from treetraits.cli import main
-
-CSV_COLUMNS = [
-    "tree_id",
-    "field_id",
-    "row",
-    "easting",
-    "northing",
-    "utm_zone",
-    "lat",
-    "lon",
-    "width_m",
-    "height_m",
-    "ndvi",
-    "observations",
-    "first_seen",
-    "last_seen",
-]
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +35,7 @@ def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
 
     with open(tmp_path / "trees.csv") as f:
         reader = csv.DictReader(f)
-        assert reader.fieldnames == CSV_COLUMNS
+        assert reader.fieldnames == CONTRACT_CSV_COLUMNS
         rows = list(reader)
     truth = truth_rows(survey)
     assert sorted(r["field_id"] for r in rows) == sorted(truth)  # each once, none extra
