@@ -114,13 +114,16 @@ def test_listen_reports_what_a_sender_sent():
         text=True,
     )
     try:
-        time.sleep(1.0)  # let it bind
+        # It says so once its sockets are bound (a cold start can take seconds).
+        first_line = listener.stderr.readline()
+        assert first_line.startswith("listening on"), first_line
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
             for packet in packets:
                 port = data_port if packet.is_data else telemetry_port
                 sender.sendto(packet.payload, ("127.0.0.1", port))
                 time.sleep(0.0005)
         out, err = listener.communicate(timeout=15)
+        err = first_line + err
     finally:
         listener.kill()
     assert listener.returncode == 0, err
