@@ -33,7 +33,7 @@ from pipeline.projection import scan_mid_time
 POSE_WAIT_NS = 300_000_000
 # Before the first GNSS fix, scans wait this long for one; then the run maps in `odom`
 # for good (trees are georeferenced at the end if a fix ever comes).
-DATUM_WAIT_NS = 30_000_000_000
+DATUM_WAIT_NS = 10_000_000_000  # 100 scans held at most (~85 MB of points)
 FRAME_BUFFER = 30  # frames kept (3 s at 10 Hz)
 
 

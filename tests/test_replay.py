@@ -11,6 +11,7 @@ import sqlite3
 import pytest
 
 from pipeline.replay import ReplayOptions, run_replay
+from sim.gnss import GnssSettings
 from sim.run import SurveySettings, simulate_survey
 from tests.conftest import CONTRACT_CSV_COLUMNS
 from treetraits.cli import main
@@ -96,3 +97,19 @@ def test_bad_options_are_refused(survey, tmp_path):
         )
         == 2
     )
+
+
+def test_a_run_without_gnss_maps_in_odom(tmp_path):
+    """No fix at all: after DATUM_WAIT_NS the run maps in odom; trees are still found and
+    reported, without a UTM position or a field-map match."""
+    gnss = GnssSettings(outages=((0.0, 1e6),))
+    survey = simulate_survey(
+        tmp_path / "denied.mcap", SurveySettings(rows=2, goal=10.0, seed=1, gnss=gnss)
+    )
+    report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
+    assert report.summary["world_frame"] == "odom" and report.summary["fixes"] == 0
+    assert len(report.trees) == 4
+    assert all(t.easting is None and t.field_id is None for t in report.trees)
+    with open(tmp_path / "out" / "trees.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 4 and all(r["easting"] == "" and r["utm_zone"] == "" for r in rows)
