@@ -18,6 +18,7 @@ while reading: a corrupt JPEG is counted when someone decodes it.
 
 from __future__ import annotations
 
+import abc
 import csv
 import io
 import os
@@ -98,7 +99,7 @@ def parse_timestamps(lines: Iterable[str]) -> tuple[list[TimestampRow], int]:
     return rows, bad
 
 
-class _ReplaySource:
+class _ReplaySource(abc.ABC):
     """Iteration, `frame_near`, `decode` and counters over a subclass's `_frames()`."""
 
     is_live = False
@@ -111,8 +112,9 @@ class _ReplaySource:
         self._stream: Iterator[Frame] | None = None
         self._exhausted = False
 
+    @abc.abstractmethod
     def _frames(self) -> Iterator[Frame]:
-        raise NotImplementedError
+        """The source's frames, in order (each replay kind reads its own format)."""
 
     def _counted(self) -> Iterator[Frame]:
         for frame in self._frames():
