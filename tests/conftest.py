@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import pytest
 
 from drivers.records import Scan
@@ -58,3 +59,17 @@ def decode_file(path: str | Path, **options) -> tuple[list[Scan], LidarReader]:
 @pytest.fixture(params=VLP16_CAPTURES)
 def capture(request) -> str:
     return request.param
+
+
+@pytest.fixture
+def decode_calls(monkeypatch):
+    """Counts every cv2.imdecode call in the process (the real one still runs)."""
+    calls = []
+    real = cv2.imdecode
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "imdecode", counting)
+    return calls

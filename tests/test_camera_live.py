@@ -191,20 +191,6 @@ def wait_until(condition, timeout: float = 3.0) -> bool:
     return condition()
 
 
-@pytest.fixture
-def decode_calls(monkeypatch):
-    """Counts every cv2.imdecode call in the process (the real one still runs)."""
-    calls = []
-    real = cv2.imdecode
-
-    def counting(*args, **kwargs):
-        calls.append(1)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(cv2, "imdecode", counting)
-    return calls
-
-
 def test_asks_for_mjpg_720p30_and_reports_what_the_device_gave(caplog):
     device = FakeDevice(sizes=[(640, 480)])  # this camera only offers VGA
     caplog.set_level(logging.WARNING, logger="treetraits.camera")

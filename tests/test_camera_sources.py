@@ -46,19 +46,6 @@ def jpeg(k: int, **size) -> bytes:
     return data.tobytes()
 
 
-@pytest.fixture
-def decode_calls(monkeypatch):
-    calls = []
-    real = cv2.imdecode
-
-    def counting(*args, **kwargs):
-        calls.append(1)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(cv2, "imdecode", counting)
-    return calls
-
-
 # --- folder of JPEGs + timestamps.csv ----------------------------------------------------
 
 
