@@ -18,15 +18,17 @@ DEMO_OUT := out/demo
 # Runtime libraries the wheels load (libusb for pyusb, libGL/libEGL/libgomp for open3d and
 # OpenCV) and what building systemd-python needs (libsystemd headers, pkg-config, a C
 # compiler and the Python headers).
-SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libgomp1 libsystemd-dev pkg-config gcc
+SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libgomp1 libsystemd-dev pkg-config gcc systemd
 
-.PHONY: help setup system-packages demo test lint bench clean
+.PHONY: help setup system-packages demo test lint bench clean install uninstall
 
 help:
 	@echo "make demo    set up, then simulate a drive through the orchard twin and replay it"
 	@echo "make test    set up, then run the whole test suite and the linter"
 	@echo "make bench   run the benchmarks in bench/"
 	@echo "make clean   remove the virtualenv and outputs"
+	@echo "make install install the onboard service (as root; DESTDIR=, PREFIX= to stage)"
+	@echo "make uninstall  remove it (keeps the config, the data and the user)"
 
 setup: system-packages $(STAMP)
 
@@ -82,3 +84,11 @@ bench: setup
 
 clean:
 	rm -rf $(VENV) out *.egg-info
+
+# The onboard service: venv in PREFIX (/opt/treetraits), unit, udev rules, sysctl, default
+# config; see docs/deployment.md. DESTDIR stages into a directory without touching the system.
+install:
+	DESTDIR="$(DESTDIR)" PREFIX="$(or $(PREFIX),/opt/treetraits)" PYTHON="$(PYTHON)" systemd/install.sh $(INSTALL_FLAGS)
+
+uninstall:
+	DESTDIR="$(DESTDIR)" PREFIX="$(or $(PREFIX),/opt/treetraits)" systemd/install.sh --uninstall

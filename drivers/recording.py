@@ -153,6 +153,14 @@ class RecordingWriter:
     A path is created, never overwritten unless `overwrite` is set. A stream must support
     `write()` and `tell()`; it is flushed (and fsynced when it has a file descriptor) but
     not closed. `calibration` must be JSON-serializable; it is stored as a JSON string.
+
+    For live recording, bound what a crash loses (both off by default, which keeps chunks
+    in memory until they exceed `chunk_size` and buffers the stream as it likes):
+    - `max_chunk_age_s`: a chunk open that long is closed at the next `write()`, so a
+      slow stream (GNSS alone) still reaches the disk within about that time;
+    - `fsync_every_s`: fsync at most this often, when a chunk is written.
+    With either set, every chunk is flushed to the OS as soon as it is written, so a
+    kill -9 loses only the open chunk. `flush()` closes the open chunk on demand.
     """
 
     def __init__(
@@ -162,9 +170,19 @@ class RecordingWriter:
         calibration: Mapping[str, Any] | None = None,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         overwrite: bool = False,
+        max_chunk_age_s: float | None = None,
+        fsync_every_s: float | None = None,
     ):
         if chunk_size <= 0:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+        for name, value in (("max_chunk_age_s", max_chunk_age_s), ("fsync_every_s", fsync_every_s)):
+            if value is not None and not value > 0:
+                raise ValueError(f"{name} must be positive seconds or None, got {value}")
+        self._max_chunk_age_s = max_chunk_age_s
+        self._fsync_every_s = fsync_every_s
+        self._streaming = max_chunk_age_s is not None or fsync_every_s is not None
+        self._chunk_opened: float | None = None  # monotonic time of the open chunk's first message
+        self._last_fsync = time.monotonic()
         calibration_json = json.dumps(
             dict(calibration or {}), sort_keys=True, allow_nan=False, separators=(",", ":")
         )
@@ -179,6 +197,8 @@ class RecordingWriter:
         self._channels: dict[str, int] = {}
         self._sequences: dict[str, int] = {}
         self._closed = False
+        self._handed_over = 0  # stream position last handed to the OS (streaming mode)
+        self._final_size = 0
         try:
             self._writer = Writer(
                 self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD
@@ -234,6 +254,64 @@ class RecordingWriter:
             publish_time=publish_time,
             sequence=sequence,
         )
+        if not self._streaming:
+            return
+        # In chunked mode the writer writes to the stream only when it closes a chunk (or
+        # writes an attachment), so a moved position means something to hand to the OS.
+        if self._file.tell() != self._handed_over:
+            self._chunk_written()
+        elif self._chunk_opened is None:
+            self._chunk_opened = time.monotonic()
+        elif (
+            self._max_chunk_age_s is not None
+            and time.monotonic() - self._chunk_opened >= self._max_chunk_age_s
+        ):
+            self._writer.flush()
+            self._chunk_written()
+
+    def _chunk_written(self) -> None:
+        """A chunk just went to the stream: hand it to the OS, fsync if it is time."""
+        self._chunk_opened = None
+        self._file.flush()
+        self._handed_over = self._file.tell()
+        if (
+            self._fsync_every_s is not None
+            and time.monotonic() - self._last_fsync >= self._fsync_every_s
+        ):
+            self._fsync()
+
+    def flush(self, *, fsync: bool = False) -> None:
+        """Close the open chunk (if it holds messages), write it and everything buffered
+        to the OS, and fsync when `fsync` is set. Compression works per chunk, so flushing
+        often costs compression ratio."""
+        if self._closed:
+            raise ValueError("flush of a closed recording")
+        self._writer.flush()
+        self._chunk_opened = None
+        self._handed_over = self._file.tell()
+        if fsync:
+            self._fsync()
+
+    @property
+    def bytes_written(self) -> int:
+        """Bytes handed to the output so far (the open chunk, still in memory, excluded);
+        after `close()`, the size of the finished recording."""
+        if self._closed:
+            return self._final_size
+        return self._file.tell()
+
+    def abort(self) -> None:
+        """Close without writing the open chunk or the summary, e.g. after a write failed
+        (disk full): the file stays readable up to its last complete chunk. Errors while
+        closing are swallowed, since the file is already known to be broken. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(OSError, ValueError):
+            self._final_size = self._file.tell()
+        if self._path is not None:
+            with contextlib.suppress(OSError, ValueError):
+                self._file.close()
 
     def attach(
         self,
@@ -270,12 +348,14 @@ class RecordingWriter:
         finally:
             try:
                 self._file.flush()
+                self._final_size = self._file.tell()
                 self._fsync()
             finally:
                 if self._path is not None:
                     self._file.close()
 
     def _fsync(self) -> None:
+        self._last_fsync = time.monotonic()
         if self._path is None:
             # A caller's stream: fsync only when it is a real file.
             with contextlib.suppress(AttributeError, OSError):

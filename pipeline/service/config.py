@@ -1,0 +1,389 @@
+"""The service's configuration: a TOML file, validated at start, every key optional.
+
+`load_config(path)` reads the file (None: the defaults) and returns a frozen
+`ServiceConfig`; a bad value, a wrong type or an unknown key raises `ConfigError` naming
+`section.key` (and the nearest known key for a typo). Relative paths are taken from the
+config file's directory, so `dump_config` always prints absolute ones and reading its
+output back gives an equal config.
+"""
+
+from __future__ import annotations
+
+import difflib
+import ipaddress
+import json
+import math
+import sys
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from drivers.velodyne.models import model_by_name
+from treetraits.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+DEFAULT_CONFIG_PATH = Path("/etc/treetraits/config.toml")
+
+METHODS = ("paper", "rph", "rph-vlp16")  # as `treetraits replay --method`
+TRAITS = ("paper", "robust")
+WHEEL_KINDS = ("jackal", "bridge")
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+# --- per-field checks (metadata of the dataclass fields) -------------------------------
+
+
+def _key(help_text: str, *, check=None, path: bool = False) -> dict[str, Any]:
+    return {"help": help_text, "check": check, "path": path}
+
+
+def _positive(value: float) -> str | None:
+    return None if value > 0 else "must be > 0"
+
+
+def _at_least(minimum: int):
+    return lambda value: None if value >= minimum else f"must be >= {minimum}"
+
+
+def _port(allow_zero: bool):
+    low = 0 if allow_zero else 1
+    return lambda value: None if low <= value <= 65535 else f"must be a port in {low}..65535"
+
+
+def _one_of(choices: tuple[str, ...]):
+    return lambda value: None if value in choices else f"must be one of {', '.join(choices)}"
+
+
+def _ip(value: str) -> str | None:
+    try:
+        ipaddress.ip_address(value)
+    except ValueError:
+        return "must be an IPv4 or IPv6 address"
+    return None
+
+
+def _optional_ip(value: str) -> str | None:
+    return None if value == "" else _ip(value)
+
+
+def _lidar_model(value: str) -> str | None:
+    try:
+        model_by_name(value)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def _nonempty(value: str) -> str | None:
+    return None if value.strip() else "must not be empty"
+
+
+# --- the schema ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    dir: str = field(
+        default="/var/lib/treetraits",
+        metadata=_key(
+            "each start makes dir/runs/<UTC start>/ (traits.sqlite, trees.geojson, "
+            "trees.csv); dir/runs/latest points at it",
+            check=_nonempty,
+            path=True,
+        ),
+    )
+    export_every_s: float = field(
+        default=5.0,
+        metadata=_key(
+            "trees.geojson / trees.csv rewritten atomically this often, and at exit",
+            check=_positive,
+        ),
+    )
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    method: str = field(
+        default="paper", metadata=_key("paper | rph | rph-vlp16", check=_one_of(METHODS))
+    )
+    traits: str = field(default="paper", metadata=_key("paper | robust", check=_one_of(TRAITS)))
+    calibration: str = field(
+        default="",
+        metadata=_key('calibration v1 JSON; "" = built-in default calibration', path=True),
+    )
+    field_map: str = field(
+        default="", metadata=_key('GeoJSON or CSV field map; "" = none', path=True)
+    )
+    min_observations: int = field(
+        default=3, metadata=_key("a tree seen in fewer scans is not reported", check=_at_least(1))
+    )
+    match_gate_m: float = field(
+        default=1.5, metadata=_key("field-map matching distance", check=_positive)
+    )
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    enabled: bool = field(default=True, metadata=_key("read the VLP-16"))
+    bind: str = field(default="0.0.0.0", metadata=_key("address to listen on", check=_ip))
+    data_port: int = field(default=2368, metadata=_key("UDP data port", check=_port(False)))
+    telemetry_port: int = field(
+        default=8308, metadata=_key("0 = do not listen for telemetry", check=_port(True))
+    )
+    sensor_ip: str = field(
+        default="",
+        metadata=_key(
+            '"" = accept any sender; else foreign senders are dropped and counted',
+            check=_optional_ip,
+        ),
+    )
+    rcvbuf_bytes: int = field(
+        default=8388608,
+        metadata=_key("SO_RCVBUF asked for (capped at net.core.rmem_max)", check=_positive),
+    )
+    model: str = field(
+        default="auto", metadata=_key("auto | vlp16 | puck-lite | puck-hires", check=_lidar_model)
+    )
+    silence_s: float = field(
+        default=1.0, metadata=_key("no packet for this long -> lidar DEGRADED", check=_positive)
+    )
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    enabled: bool = field(default=True, metadata=_key("read the Survey3N"))
+    device: str = field(
+        default="auto",
+        metadata=_key(
+            "auto | usb:VID:PID | /dev/videoN | /dev/survey3n | a video file (played at its "
+            "frame rate, stamped on read; for tests)",
+            check=_nonempty,
+        ),
+    )
+    silence_s: float = field(
+        default=2.0, metadata=_key("no frame for this long -> camera DEGRADED", check=_positive)
+    )
+
+
+@dataclass(frozen=True)
+class GnssConfig:
+    enabled: bool = field(default=True, metadata=_key("read the GNSS receiver"))
+    port: str = field(default="/dev/gnss", metadata=_key("serial device", check=_nonempty))
+    baudrate: int = field(default=115200, metadata=_key("serial speed", check=_positive))
+    silence_s: float = field(
+        default=3.0, metadata=_key("no sentence for this long -> gnss DEGRADED", check=_positive)
+    )
+
+
+@dataclass(frozen=True)
+class WheelsConfig:
+    enabled: bool = field(default=True, metadata=_key("read wheel odometry"))
+    kind: str = field(
+        default="jackal",
+        metadata=_key(
+            "jackal (rosserial MCU) | bridge (retrofit encoder board)",
+            check=_one_of(WHEEL_KINDS),
+        ),
+    )
+    port: str = field(default="/dev/jackal", metadata=_key("serial device", check=_nonempty))
+    baudrate: int = field(default=115200, metadata=_key("serial speed", check=_positive))
+    silence_s: float = field(
+        default=2.0, metadata=_key("no bytes for this long -> wheels DEGRADED", check=_positive)
+    )
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    enabled: bool = field(default=False, metadata=_key("`treetraits run --record` turns it on"))
+    dir: str = field(
+        default="/var/lib/treetraits/recordings",
+        metadata=_key("recordings go here, one per start", check=_nonempty, path=True),
+    )
+    max_file_mb: int = field(
+        default=1024, metadata=_key("rotate to a new file past this size", check=_positive)
+    )
+    chunk_kb: int = field(
+        default=512,
+        metadata=_key("MCAP chunk size: about one second of all sensors", check=_positive),
+    )
+    fsync_every_s: float = field(
+        default=1.0, metadata=_key("longest time between two fsyncs", check=_positive)
+    )
+
+
+@dataclass(frozen=True)
+class QueuesConfig:
+    lidar_packets: int = field(
+        default=8000, metadata=_key("~10 s at 754 packets/s", check=_at_least(1))
+    )
+    camera_frames: int = field(default=16, metadata=_key("JPEG frames", check=_at_least(1)))
+    gnss_sentences: int = field(default=2000, metadata=_key("NMEA sentences", check=_at_least(1)))
+    wheel_chunks: int = field(
+        default=2000, metadata=_key("serial reads from the wheels", check=_at_least(1))
+    )
+
+
+@dataclass(frozen=True)
+class ServiceSection:
+    status_every_s: float = field(
+        default=2.0, metadata=_key("STATUS= line to systemd and a log line", check=_positive)
+    )
+    log_level: str = field(
+        default="info", metadata=_key("debug | info | warning | error", check=_one_of(LOG_LEVELS))
+    )
+
+
+SECTION_HELP = {
+    "queues": "bounded; a receiver never blocks: when full the NEWEST item is dropped and counted",
+}
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    output: OutputConfig = field(default_factory=OutputConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
+    wheels: WheelsConfig = field(default_factory=WheelsConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
+    queues: QueuesConfig = field(default_factory=QueuesConfig)
+    service: ServiceSection = field(default_factory=ServiceSection)
+
+
+# --- reading ---------------------------------------------------------------------------
+
+
+def load_config(path: Path | None) -> ServiceConfig:
+    """The config in `path` (None: every default). ConfigError names the file and the key."""
+    if path is None:
+        return ServiceConfig()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(
+            f"{path}: no such config file; write one (`treetraits config dump > {path}` "
+            "prints the defaults) or point --config at it"
+        ) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read the config file ({exc})") from None
+    try:
+        document = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return parse_config(document, base=path.resolve().parent, source=str(path))
+
+
+def parse_config(document: dict[str, Any], base: Path, source: str = "config") -> ServiceConfig:
+    """A parsed TOML document to a checked config; relative paths resolved against `base`."""
+    sections = {f.name: f for f in fields(ServiceConfig)}
+    values: dict[str, Any] = {}
+    for name, content in document.items():
+        if name not in sections:
+            raise ConfigError(f"{source}: unknown section [{name}]{_nearest(name, sections)}")
+        if not isinstance(content, dict):
+            raise ConfigError(f"{source}: {name} must be a [{name}] table of keys")
+        section_type = sections[name].default_factory  # type: ignore[misc]
+        values[name] = _parse_section(name, section_type, content, base, source)
+    return ServiceConfig(**values)
+
+
+def _parse_section(name: str, section_type, content: dict, base: Path, source: str):
+    known = {f.name: f for f in fields(section_type)}
+    values = {}
+    for key, raw in content.items():
+        where = f"{name}.{key}"
+        if key not in known:
+            raise ConfigError(f"{source}: unknown key {where}{_nearest(key, known, name)}")
+        spec = known[key]
+        value = _typed(raw, spec.default, where, source)
+        check = spec.metadata.get("check")
+        problem = check(value) if check else None
+        if problem:
+            raise ConfigError(f"{source}: {where} {problem}, got {_show(raw)}")
+        if spec.metadata.get("path") and value and not Path(value).is_absolute():
+            value = str((base / value).resolve())
+        if name == "camera" and key == "device":
+            value = _camera_device(value, base)
+        values[key] = value
+    return section_type(**values)
+
+
+def _typed(raw: Any, default: Any, where: str, source: str) -> Any:
+    """`raw` as the type of the key's default: bool, int, float (an int is fine) or str."""
+    kind = type(default)
+    if kind is bool:
+        ok = isinstance(raw, bool)
+    elif kind is int:
+        ok = isinstance(raw, int) and not isinstance(raw, bool)
+    elif kind is float:
+        ok = isinstance(raw, int | float) and not isinstance(raw, bool)
+        if ok and not math.isfinite(raw):
+            raise ConfigError(f"{source}: {where} must be a finite number, got {_show(raw)}")
+    else:
+        ok = isinstance(raw, str)
+    if not ok:
+        names = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+        raise ConfigError(f"{source}: {where} must be {names[kind]}, got {_show(raw)}")
+    return kind(raw)
+
+
+def _camera_device(value: str, base: Path) -> str:
+    """A video-file device relative to the config file; device specs are left alone."""
+    if value == "auto" or value.startswith(("usb:", "/")) or value.isdigit():
+        return value
+    return str((base / value).resolve())
+
+
+def _nearest(word: str, known, section: str | None = None) -> str:
+    close = difflib.get_close_matches(word, list(known), n=1, cutoff=0.6)
+    if not close:
+        listed = ", ".join(known)
+        return f"; known: {listed}"
+    return f"; did you mean {section + '.' if section else ''}{close[0]}?"
+
+
+def _show(value: Any) -> str:
+    return json.dumps(value) if isinstance(value, str) else repr(value)
+
+
+# --- writing ---------------------------------------------------------------------------
+
+
+def dump_config(cfg: ServiceConfig, comments: bool = True) -> str:
+    """`cfg` as TOML that `load_config` reads back to an equal config; with `comments`,
+    each key is followed by what it does."""
+    lines: list[str] = []
+    for section in fields(ServiceConfig):
+        content = getattr(cfg, section.name)
+        header = f"[{section.name}]"
+        if comments and section.name in SECTION_HELP:
+            header = f"{header:<34} # {SECTION_HELP[section.name]}"
+        lines.append(header)
+        for spec in fields(content):
+            assignment = f"{spec.name} = {_toml_value(getattr(content, spec.name))}"
+            if comments:
+                assignment = f"{assignment:<34} # {spec.metadata['help']}"
+            lines.append(assignment.rstrip())
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    # A TOML basic string takes JSON's escapes (ASCII only, so none is ambiguous).
+    return json.dumps(value, ensure_ascii=True)
+
+
+def with_overrides(cfg: ServiceConfig, **sections: dict[str, Any]) -> ServiceConfig:
+    """`cfg` with some keys replaced, e.g. `with_overrides(cfg, record={"enabled": True})`
+    (command-line options that override the file)."""
+    return replace(cfg, **{name: replace(getattr(cfg, name), **v) for name, v in sections.items()})
