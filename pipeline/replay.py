@@ -18,8 +18,7 @@ from drivers.calibration import Calibration, load_calibration
 from drivers.records import Tree
 from drivers.velodyne.sources import open_source
 from pipeline.fieldmap import load_field_map, parse_geojson
-from pipeline.georef import georeference, write_trees_csv, write_trees_geojson
-from pipeline.store import Observation, TraitStore
+from pipeline.service.outputs import STORE_NAME, RunWriter
 from pipeline.survey import SurveyProcessor
 from treetraits import __version__
 from treetraits.errors import ConfigError, SourceError
@@ -147,11 +146,10 @@ def run_replay(
         field_map = []
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    for stale in ("traits.sqlite", "traits.sqlite-wal", "traits.sqlite-shm"):
+    for stale in (STORE_NAME, f"{STORE_NAME}-wal", f"{STORE_NAME}-shm"):
         (out_dir / stale).unlink(missing_ok=True)  # a replay is a run of its own
     mapper = make_mapper(options, calibration)
     processor = SurveyProcessor(mapper, calibration)
-    store = TraitStore(out_dir / "traits.sqlite")
     summary = {
         "software": f"treetraits {__version__}",
         "input": str(path),
@@ -159,43 +157,31 @@ def run_replay(
         "traits": options.traits,
         "calibration": calibration.to_json(),
     }
-    store.set_run_facts(summary)
-
-    def georeferenced() -> list[Tree]:
-        localizer = processor.localizer
-        seen = [t for t in mapper.trees() if t.observations >= options.min_observations]
-        return georeference(
-            seen,
-            localizer.grid,
-            field_map,
-            utm_from_odom=localizer.utm_from_odom,
-            gate_m=options.match_gate_m,
-        )
-
-    def export(trees: list[Tree]) -> None:
-        write_trees_csv(out_dir / "trees.csv", trees)
-        write_trees_geojson(out_dir / "trees.geojson", trees)
-
-    scans = 0
+    writer = RunWriter(
+        out_dir,
+        processor,
+        field_map,
+        min_observations=options.min_observations,
+        match_gate_m=options.match_gate_m,
+        facts=summary,
+    )
     next_export = None
     try:
         for topic, data, log_time, publish_time in source.messages:
             outcomes = processor.feed(topic, data, log_time, publish_time)
             for outcome in outcomes:
-                _commit(store, outcome, georeferenced)
-            scans += len(outcomes)
+                writer.commit(outcome)
+            # Exports follow recorded time, so a replay is deterministic.
             if outcomes and (next_export is None or log_time >= next_export):
-                export(georeferenced())
+                writer.export()
                 next_export = log_time + int(options.export_every_s * 1e9)
             if progress:
                 progress(len(data))
         for outcome in processor.finish():
-            _commit(store, outcome, georeferenced)
-            scans += 1
-        trees = georeferenced()
-        export(trees)
+            writer.commit(outcome)
+        trees = writer.export()
         summary.update(
-            scans=scans,
+            scans=writer.scans,
             trees=len(trees),
             matched=sum(t.field_id is not None for t in trees),
             world_frame=processor.world_frame,
@@ -204,34 +190,10 @@ def run_replay(
             fixes=processor.stats.fixes,
             frames=processor.stats.frames,
         )
-        store.set_run_facts(summary)
+        writer.set_facts(summary)
     finally:
-        store.close()
+        writer.close()
     return ReplayReport(summary, trees, out_dir)
-
-
-def _commit(store: TraitStore, outcome, georeferenced) -> None:
-    """One scan's observations and the trees it touched, in one transaction."""
-    result = outcome.result
-    observations = [
-        Observation(
-            result.t,
-            str(c.tree_id),
-            float(c.centroid[0]),
-            float(c.centroid[1]),
-            float(c.centroid[2]),
-            result.frame,
-            None,
-            None,
-            None if c.ndvi is None or c.ndvi != c.ndvi else float(c.ndvi),
-            c.num_points,
-        )
-        for c in result.clusters
-        if c.tree_id is not None
-    ]
-    touched = {str(i) for i in (*result.created, *result.updated)}
-    trees = [t for t in georeferenced() if t.tree_id in touched] if touched else []
-    store.commit_scan(observations, trees)
 
 
 def format_table(trees: list[Tree]) -> str:

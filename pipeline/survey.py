@@ -3,9 +3,10 @@ the onboard service.
 
 Messages arrive as they were received (and as a recording stores them): a topic of the
 recording format, the bytes, `log_time` (host receive time) and `publish_time`. LiDAR
-packets become scans, NMEA becomes fixes, MCU bytes become wheel samples, JPEGs wait in a
-short buffer. A scan is processed once the pose history covers it (GNSS epochs arrive a
-little after the moment they describe), with the camera frame nearest its middle.
+packets become scans, NMEA becomes fixes, Jackal MCU and retrofit encoder board bytes
+become wheel samples, JPEGs wait in a short buffer. A scan is processed once the pose
+history covers it (GNSS epochs arrive a little after the moment they describe), with the
+camera frame nearest its middle.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from drivers.gnss.stream import SentenceSplitter
 from drivers.records import Fix, Frame, Pose, Scan, WheelSample
 from drivers.velodyne.batcher import ScanBatcher
 from firmware_bridge.jackal.session import JackalProtocol
+from firmware_bridge.retrofit.reader import BridgeDecoder
 from pipeline.localization import LocalizationConfig, Localizer
 from pipeline.localization.utm import wrap_angle
 from pipeline.projection import scan_mid_time
@@ -49,6 +51,7 @@ class ScanOutcome:
 class SurveyStats:
     scans: int = 0
     scans_without_pose: int = 0
+    scans_skipped: int = 0  # could not be placed in the run's frame: not mapped (see _ready)
     frames: int = 0
     fixes: int = 0
     wheel_samples: int = 0
@@ -68,11 +71,13 @@ class SurveyProcessor:
         self._splitter = SentenceSplitter()
         self._epochs = EpochAssembler()
         self._mcu = JackalProtocol()
+        self._bridge = BridgeDecoder()
         self._frames: deque[Frame] = deque(maxlen=FRAME_BUFFER)
         self._pending: deque[Scan] = deque()
         self._latest = 0  # newest log_time seen
         # The mapper's world frame, chosen once: "utm" when a fix comes in time, else "odom".
         self.world_frame: str | None = None
+        self._mapped_with_pose: bool | None = None  # set by the first scan mapped
 
     def feed(self, topic: str, data: bytes, log_time: int, publish_time: int) -> list[ScanOutcome]:
         """One received message; returns the scans it let through the pipeline."""
@@ -95,6 +100,11 @@ class SurveyProcessor:
                     self.stats.wheel_samples += 1
                     self.localizer.add_wheels(record)
             self._mcu.take_outgoing()  # a recording cannot answer the MCU
+        elif topic == rec.WHEELS_BRIDGE:
+            for record in self._bridge.push(data, log_time):
+                if isinstance(record, WheelSample):  # ticks: the localizer converts them
+                    self.stats.wheel_samples += 1
+                    self.localizer.add_wheels(record)
         elif topic == rec.LIDAR_TELEMETRY:
             pass  # the VLP-16's own GPS input: not used for the pose
         else:
@@ -138,6 +148,17 @@ class SurveyProcessor:
         yaw = odom.yaw + math.atan2(transform[1, 0], transform[0, 0])
         return Pose(t, float(x), float(y), wrap_angle(yaw), odom.covariance, "utm")
 
+    def _mappable(self, pose: Pose | None) -> bool:
+        """The mapper holds its trees in one frame, fixed by the first scan it maps: a scan
+        that cannot be placed in it is left out (e.g. in a live run, scans newer than the last
+        pose at shutdown, or seen while the wheels and the receiver are both gone)."""
+        posed = pose is not None
+        if not posed and self.world_frame == "utm":
+            return False
+        if self._mapped_with_pose is None:
+            self._mapped_with_pose = posed
+        return posed == self._mapped_with_pose
+
     def _ready(self, horizon: int | None) -> list[ScanOutcome]:
         out = []
         if not self._choose_frame(end_of_input=horizon is None):
@@ -148,6 +169,9 @@ class SurveyProcessor:
             pose = self._pose(middle)
             if pose is None:
                 self.stats.scans_without_pose += 1
+            if not self._mappable(pose):
+                self.stats.scans_skipped += 1
+                continue
             frame = min(self._frames, key=lambda f: abs(f.t_capture - middle), default=None)
             result = self.mapper.process(scan, frame, pose)
             self.stats.scans += 1

@@ -10,7 +10,20 @@ import argparse
 import sys
 
 from treetraits import __version__
-from treetraits.cli import calibrate, camera, fuse, lidar, nmea, replay, sim
+from treetraits.cli import (
+    calibrate,
+    camera,
+    config,
+    doctor,
+    fuse,
+    lidar,
+    nmea,
+    play,
+    record,
+    replay,
+    run,
+    sim,
+)
 from treetraits.errors import TreetraitsError
 
 
@@ -31,6 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
     fuse.register(commands)
     sim.register(commands)
     replay.register(commands)
+    run.register(commands)
+    record.register(commands)
+    config.register(commands)
+    play.register(commands)
+    doctor.register(commands)
     return parser
 
 

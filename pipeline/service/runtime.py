@@ -1,0 +1,473 @@
+"""The service's main loop: `treetraits run` (map and store) and `treetraits record`.
+
+`Service(cfg).run()`:
+
+1. opens the run directory (`output.dir/runs/<UTC start>/`, `runs/latest` -> it), the
+   store, the recorder when recording, and every enabled source (a LiDAR port that cannot
+   be bound, or a bad calibration, ends the start with a clear error; a serial device or a
+   camera that is not there yet is retried in the background);
+2. tells systemd READY=1, then takes messages from the queues oldest first (each queue's
+   head, by `log_time`), feeds them to `SurveyProcessor`, commits every processed scan,
+   writes them to the recorder, exports every `output.export_every_s`, sends STATUS= every
+   `service.status_every_s` and WATCHDOG=1 while the loop goes round;
+3. on SIGTERM/SIGINT closes the sources, drains what is queued (at most `DRAIN_S`),
+   commits, exports, closes store and recorder, STOPPING=1, and returns 0 (a second
+   signal exits at once with 128 + signal number).
+
+A full disk never stops the mapping: a scan the store cannot commit is rolled back and
+counted, the status says DEGRADED with the file and the error, and later scans try again
+(trees are rewritten whole each time they change, so the store catches up once space is
+freed). The recorder is closed at its first write error and stays off for the run. See
+docs/service.md.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+from drivers import recording as rec
+from drivers.calibration import Calibration, load_calibration
+from drivers.camera.sources import is_live_uri
+from pipeline.fieldmap import load_field_map
+from pipeline.service.config import ServiceConfig, dump_config
+from pipeline.service.health import assess, status_line
+from pipeline.service.notify import Notifier
+from pipeline.service.outputs import OutputError, RunWriter
+from pipeline.service.workers import (
+    BoundedQueue,
+    BridgeWorker,
+    CameraWorker,
+    GnssWorker,
+    JackalWorker,
+    LidarWorker,
+    Message,
+    Worker,
+    is_video_file,
+    lidar_publish_time,
+)
+from treetraits import __version__
+from treetraits.errors import ConfigError, TreetraitsError
+
+log = logging.getLogger("treetraits.service")
+
+DRAIN_S = 3.0  # at shutdown, queued items are processed for at most this long
+JOIN_S = 1.0  # then each receive thread gets this long to end
+IDLE_WAIT_S = 0.1  # with every queue empty, the loop sleeps at most this long
+BATCH = 256  # items between two looks at the clock (exports, status, watchdog)
+
+
+@dataclass
+class Counters:
+    """The loop's own counts, beside the workers'."""
+
+    messages: int = 0
+    scans: int = 0
+    store_failures: int = 0
+    processing_errors: int = 0  # messages the pipeline raised on (logged, then skipped)
+    export_failures: int = 0
+    recorded: int = 0
+    problems: dict[str, str] = field(default_factory=dict)  # "store"/"export"/"recorder" -> text
+
+
+def utc_stamp(moment: datetime | None = None) -> str:
+    """20261123T161800Z: a run's name, sortable, safe in a path."""
+    moment = moment or datetime.now(timezone.utc)
+    return moment.strftime("%Y%m%dT%H%M%SZ")
+
+
+def new_run_dir(root: Path, stamp: str) -> Path:
+    """`root/runs/<stamp>` (with -2, -3, ... when a restart falls in the same second) and
+    `root/runs/latest` pointing at it, replaced atomically (symlink beside it, rename)."""
+    runs = root / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    run = runs / stamp
+    n = 1
+    while True:
+        try:
+            run.mkdir()
+            break
+        except FileExistsError:
+            n += 1
+            run = runs / f"{stamp}-{n}"
+    link = runs / f".latest.{os.getpid()}"
+    with contextlib.suppress(FileNotFoundError):
+        link.unlink()
+    link.symlink_to(run.name)
+    os.replace(link, runs / "latest")
+    return run
+
+
+class Service:
+    """The onboard service. `process=False` only records (`treetraits record`)."""
+
+    def __init__(
+        self,
+        cfg: ServiceConfig,
+        *,
+        process: bool = True,
+        record_path: Path | None = None,
+        config_path: Path | None = None,
+        notifier: Notifier | None = None,
+    ):
+        self.cfg = cfg
+        self.process = process
+        self.record_path = record_path
+        self.config_path = config_path
+        self.notifier = notifier or Notifier()
+        self.counters = Counters()
+        self.run_dir: Path | None = None
+        self.writer: RunWriter | None = None
+        self.processor = None
+        self.recorder = None
+        self.workers: list[Worker] = []
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._signals = 0
+
+    # --- start ---------------------------------------------------------------------------
+
+    def _calibration(self) -> Calibration:
+        path = self.cfg.pipeline.calibration
+        if not path:
+            return Calibration()
+        try:
+            return load_calibration(Path(path))
+        except TreetraitsError as exc:
+            raise ConfigError(f"pipeline.calibration: {exc}") from exc
+
+    def _field_map(self):
+        path = self.cfg.pipeline.field_map
+        if not path:
+            return [], None
+        try:
+            trees = load_field_map(Path(path))
+            return trees, Path(path).read_bytes()
+        except (TreetraitsError, OSError) as exc:
+            raise ConfigError(f"pipeline.field_map: {exc}") from exc
+
+    def _check_devices(self) -> None:
+        camera = self.cfg.camera
+        if camera.enabled and not is_live_uri(camera.device) and not is_video_file(camera.device):
+            raise ConfigError(
+                f"camera.device: {camera.device}: no such video file; a camera is auto, "
+                "usb:VID:PID, /dev/videoN, /dev/survey3n or a video file"
+            )
+
+    def _make_workers(self) -> list[Worker]:
+        cfg, q = self.cfg, self.cfg.queues
+        workers: list[Worker] = []
+        if cfg.lidar.enabled:
+            workers.append(LidarWorker(cfg.lidar, self._queue("lidar", q.lidar_packets)))
+        if cfg.camera.enabled:
+            workers.append(CameraWorker(cfg.camera, self._queue("camera", q.camera_frames)))
+        if cfg.gnss.enabled:
+            workers.append(GnssWorker(cfg.gnss, self._queue("gnss", q.gnss_sentences)))
+        if cfg.wheels.enabled:
+            kind = JackalWorker if cfg.wheels.kind == "jackal" else BridgeWorker
+            workers.append(kind(cfg.wheels, self._queue("wheels", q.wheel_chunks)))
+        if not workers:
+            raise ConfigError(
+                "no sensor enabled: set enabled = true in [lidar], [camera], [gnss] or [wheels]"
+            )
+        return workers
+
+    def _queue(self, name: str, capacity: int) -> BoundedQueue:
+        return BoundedQueue(name, capacity, self._wake)
+
+    def _open_recorder(self, calibration: Calibration, field_map: bytes | None) -> None:
+        from drivers.rotation import RotatingRecorder
+
+        path = self.record_path
+        if path is None:
+            directory = Path(self.cfg.record.dir)
+            directory.mkdir(parents=True, exist_ok=True)
+            path = directory / f"{self._stamp}.mcap"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.recorder = RotatingRecorder(
+            path,
+            max_bytes=self.cfg.record.max_file_mb * 1024 * 1024,
+            chunk_bytes=self.cfg.record.chunk_kb * 1024,
+            fsync_every_s=self.cfg.record.fsync_every_s,
+            calibration=calibration.to_json(),
+            field_map=field_map,
+        )
+        log.info("recording to %s", path)
+
+    def start(self) -> None:
+        """Everything up to READY=1. TreetraitsError for what the user must fix."""
+        self._stamp = utc_stamp()
+        self._check_devices()
+        calibration = self._calibration()
+        field_map, field_map_bytes = self._field_map()
+        self.workers = self._make_workers()
+        if self.process:
+            from pipeline.replay import ReplayOptions, make_mapper
+            from pipeline.survey import SurveyProcessor
+
+            p = self.cfg.pipeline
+            mapper = make_mapper(ReplayOptions(method=p.method, traits=p.traits), calibration)
+            self.processor = SurveyProcessor(mapper, calibration, self.cfg.lidar.model)
+            try:
+                self.run_dir = new_run_dir(Path(self.cfg.output.dir), self._stamp)
+            except OSError as exc:
+                raise ConfigError(
+                    f"output.dir: cannot make a run directory in {self.cfg.output.dir} "
+                    f"({exc.strerror or exc})"
+                ) from exc
+            self.writer = RunWriter(
+                self.run_dir,
+                self.processor,
+                field_map,
+                min_observations=p.min_observations,
+                match_gate_m=p.match_gate_m,
+                facts={
+                    "software": f"treetraits {__version__}",
+                    "input": "live",
+                    "method": p.method,
+                    "traits": p.traits,
+                    "started": self._stamp,
+                    "config": dump_config(self.cfg, comments=False),
+                    "calibration": calibration.to_json(),
+                },
+            )
+            log.info("run directory %s", self.run_dir)
+        try:
+            if self.cfg.record.enabled or self.record_path is not None:
+                self._open_recorder(calibration, field_map_bytes)
+            for worker in self.workers:
+                # Only a LiDAR port we cannot bind is fatal: a serial device or a camera
+                # may be plugged in later.
+                worker.open(retry=not isinstance(worker, LidarWorker))
+        except TreetraitsError:
+            self._close_outputs()
+            raise
+        for worker in self.workers:
+            worker.start()
+
+    # --- the loop ------------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Start, loop until a signal, shut down. The exit status."""
+        self.start()
+        self._install_signals()
+        now = time.monotonic()
+        status = self._status(now)
+        self.notifier.ready(status)
+        log.info("ready: %s", status)
+        next_status = now + self.cfg.service.status_every_s
+        next_export = now + self.cfg.output.export_every_s
+        while not self._stop.is_set():
+            handled = self._handle_batch(BATCH)
+            now = time.monotonic()
+            if self.writer is not None and now >= next_export:
+                self._export()
+                next_export = now + self.cfg.output.export_every_s
+            if now >= next_status:
+                self._report(now)
+                next_status = now + self.cfg.service.status_every_s
+            # The loop came round: it handled items, or found every queue empty.
+            self.notifier.watchdog(progressed=True)
+            if not handled:
+                self._wake.wait(IDLE_WAIT_S)
+                self._wake.clear()
+        return self._shutdown()
+
+    def _next_message(self) -> Message | None:
+        """The oldest item at the head of any queue (receive order as far as practical)."""
+        best, best_time = None, None
+        for worker in self.workers:
+            t = worker.queue.head_time()
+            if t is not None and (best_time is None or t < best_time):
+                best, best_time = worker.queue, t
+        return best.pop() if best is not None else None
+
+    def _handle_batch(self, limit: int, deadline: float | None = None) -> int:
+        handled = 0
+        while handled < limit:
+            if deadline is not None and time.monotonic() >= deadline:
+                break
+            message = self._next_message()
+            if message is None:
+                break
+            self._handle(message)
+            handled += 1
+        return handled
+
+    def _handle(self, m: Message) -> None:
+        self.counters.messages += 1
+        if self.recorder is not None:
+            self._record(m)
+        if self.processor is not None:
+            try:
+                outcomes = self.processor.feed(m.topic, m.data, m.log_time, m.publish_time)
+            except Exception:  # a pipeline bug: keep the sensors and the store going
+                self.counters.processing_errors += 1
+                if self.counters.processing_errors <= 3:
+                    log.exception("processing a %s message failed; going on", m.topic)
+                return
+            for outcome in outcomes:
+                self._commit(outcome)
+
+    def _record(self, m: Message) -> None:
+        publish = m.publish_time
+        if m.topic in (rec.LIDAR_PACKETS, rec.LIDAR_TELEMETRY):
+            publish = lidar_publish_time(m.data, m.log_time)
+        try:
+            self.recorder.write(m.topic, m.data, m.log_time, publish)
+        except (TreetraitsError, OSError) as exc:
+            self._fail_recorder(exc)
+            return
+        self.counters.recorded += 1
+
+    def _fail_recorder(self, exc: Exception) -> None:
+        text = f"recording stopped: {exc}"
+        log.error("%s; mapping goes on, the files written so far stay readable", text)
+        self.counters.problems["recorder"] = text
+        recorder, self.recorder = self.recorder, None
+        with contextlib.suppress(Exception):  # the disk that failed may fail the close too
+            recorder.close()
+
+    def _commit(self, outcome) -> None:
+        try:
+            self.writer.commit(outcome)
+        except OutputError as exc:
+            self.counters.store_failures += 1
+            if "store" not in self.counters.problems:
+                log.error("%s; the scan is rolled back, later scans try again", exc)
+            self.counters.problems["store"] = str(exc)
+            return
+        self.counters.scans += 1
+        if self.counters.problems.pop("store", None) is not None:
+            log.warning("%s: committing again", self.writer.store_path)
+
+    def _export(self) -> None:
+        try:
+            self.writer.export()
+        except OutputError as exc:
+            self.counters.export_failures += 1
+            if "export" not in self.counters.problems:
+                log.error("%s", exc)
+            self.counters.problems["export"] = str(exc)
+            return
+        self.counters.problems.pop("export", None)
+
+    # --- status ----------------------------------------------------------------------------
+
+    def _numbers(self) -> dict[str, int]:
+        numbers: dict[str, int] = {}
+        if self.writer is not None:
+            numbers["scans"] = self.counters.scans
+            numbers["trees"] = len(self.writer.reported())
+        if self.recorder is not None or "recorder" in self.counters.problems:
+            numbers["recorded"] = self.counters.recorded
+        numbers["dropped"] = sum(w.queue.dropped for w in self.workers)
+        if self.counters.processing_errors:
+            numbers["errors"] = self.counters.processing_errors
+        for worker in self.workers:
+            if isinstance(worker, LidarWorker):
+                counts = worker.counters()
+                numbers["foreign"] = counts.get("foreign", 0)
+                numbers["kernel_drops"] = counts.get("kernel_drops", 0)
+        return numbers
+
+    def _status(self, now: float) -> str:
+        health = assess((w.state() for w in self.workers), now, self.counters.problems.values())
+        return status_line(health, self._numbers())
+
+    def _report(self, now: float) -> None:
+        line = self._status(now)
+        self.notifier.status(line)
+        if line.startswith("DEGRADED"):
+            log.warning("%s", line)
+        else:
+            log.info("%s", line)
+
+    # --- stop ------------------------------------------------------------------------------
+
+    def _install_signals(self) -> None:
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(signum, self._on_signal)
+
+    def _on_signal(self, signum, frame) -> None:
+        self._signals += 1
+        if self._signals > 1:
+            os._exit(128 + signum)  # asked twice: no more flushing
+        self._stop.set()
+        self._wake.set()
+
+    def request_stop(self) -> None:
+        """Stop as on SIGTERM (for callers running the loop on another thread)."""
+        self._stop.set()
+        self._wake.set()
+
+    def _shutdown(self) -> int:
+        begun = time.monotonic()
+        self.notifier.stopping(self._status(begun))
+        log.info("stopping: closing the sources, draining the queues")
+        for worker in self.workers:
+            worker.stop()
+        left = sum(len(w.queue) for w in self.workers)
+        self._handle_batch(left, deadline=begun + DRAIN_S)
+        unhandled = sum(len(w.queue) for w in self.workers)
+        if unhandled:
+            log.warning("stopping: %d queued items left unprocessed (drain limit)", unhandled)
+        if self.processor is not None:
+            # The last partial scan and those waiting for poses: normally a few, quick.
+            try:
+                outcomes = self.processor.finish()
+            except Exception:
+                log.exception("processing the last scans failed")
+                outcomes = []
+            for outcome in outcomes:
+                self._commit(outcome)
+        self._close_outputs()
+        for worker in self.workers:
+            if not worker.join(JOIN_S):
+                log.warning("%s: receive thread still busy at exit", worker.name)
+        summary = dict(self._numbers(), messages=self.counters.messages)
+        summary["store_failures"] = self.counters.store_failures
+        summary["run_s"] = round(time.monotonic() - begun, 2)
+        log.info("stopped: %s", json.dumps(summary))
+        return 0
+
+    def _close_outputs(self) -> None:
+        if self.writer is not None:
+            if self.processor is not None:
+                self._export()
+                self._set_final_facts()
+            try:
+                self.writer.close()
+            except OutputError as exc:
+                log.error("%s", exc)
+        if self.recorder is not None:
+            try:
+                self.recorder.close()
+            except (TreetraitsError, OSError) as exc:
+                log.error("recording not closed cleanly: %s", exc)
+            else:
+                log.info("recording closed: %s", ", ".join(map(str, self.recorder.files)))
+
+    def _set_final_facts(self) -> None:
+        processor = self.processor
+        facts = {
+            "scans": self.counters.scans,
+            "world_frame": processor.world_frame,
+            "utm_zone": processor.localizer.grid.name if processor.localizer.grid else None,
+            "scans_without_pose": processor.stats.scans_without_pose,
+            "fixes": processor.stats.fixes,
+            "frames": processor.stats.frames,
+            "stopped": utc_stamp(),
+        }
+        try:
+            self.writer.set_facts(facts)
+        except OutputError as exc:
+            log.error("%s", exc)

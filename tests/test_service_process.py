@@ -1,0 +1,342 @@
+"""`treetraits run` as a subprocess on loopback, the way systemd runs it.
+
+A simulated survey is streamed live at its real rate by `sim.player.RecordingPlayer`:
+LiDAR over UDP to 127.0.0.1, GNSS and the Jackal MCU over pseudo-terminals, the camera
+as an MJPG video file. A bound AF_UNIX datagram socket stands in for systemd's
+NOTIFY_SOCKET and receives READY, STATUS, WATCHDOG and STOPPING. Checked: the outputs,
+SIGTERM within 5 s, a GNSS pty closed mid-run, kill -9 and a restart, a foreign sender,
+a full disk (RLIMIT_FSIZE) and a config error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import resource
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from drivers import recording as rec
+from sim.player import RecordingPlayer, write_camera_video
+from sim.run import SurveySettings, simulate_survey
+
+REPO = Path(__file__).resolve().parents[1]
+
+START_S = 90  # imports (open3d, OpenCV) on a loaded 2-core machine
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    """A 10 s drive past the paper's 2x3 grid, its calibration, field map and video."""
+    folder = tmp_path_factory.mktemp("service-survey")
+    result = simulate_survey(folder / "survey.mcap", SurveySettings(seed=0, goal=5.0))
+    with rec.read_recording(result.recording) as recording:
+        calibration = recording.metadata.calibration
+    (folder / "calibration.json").write_text(json.dumps(calibration))
+    write_camera_video(result.recording, folder / "camera.avi")
+    return result
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def write_config(folder: Path, survey, player: RecordingPlayer | None, **extra: str) -> Path:
+    sections = {
+        "output": f'dir = "{folder / "out"}"\nexport_every_s = 1.0',
+        "pipeline": (
+            f'calibration = "{survey.recording.parent / "calibration.json"}"\n'
+            f'field_map = "{survey.field_map}"'
+        ),
+        "lidar": (
+            f'bind = "127.0.0.1"\ndata_port = {player.data_port if player else free_udp_port()}'
+            f'\ntelemetry_port = 0\nsensor_ip = "127.0.0.1"'
+        ),
+        "camera": f'device = "{survey.recording.parent / "camera.avi"}"',
+        "gnss": f'port = "{player.gnss_device if player else "/dev/null-gnss"}"',
+        "wheels": f'port = "{player.wheels_device if player else "/dev/null-wheels"}"',
+        "record": f'dir = "{folder / "recordings"}"',
+        "service": "status_every_s = 0.5",
+    }
+    sections.update(extra)
+    path = folder / "config.toml"
+    path.write_text("\n".join(f"[{k}]\n{v}\n" for k, v in sections.items()))
+    return path
+
+
+class Service:
+    """The service subprocess and what it sent to its NOTIFY_SOCKET."""
+
+    def __init__(self, folder: Path, config: Path, *args: str, preexec_fn=None):
+        self.socket_path = folder / f"notify-{time.monotonic_ns()}.sock"
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(self.socket_path))
+        self.sock.settimeout(0.2)
+        self.messages: list[str] = []
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        env = dict(os.environ, NOTIFY_SOCKET=str(self.socket_path), WATCHDOG_USEC="2000000")
+        env.pop("INVOCATION_ID", None)
+        env.pop("JOURNAL_STREAM", None)
+        self.stderr_path = folder / f"stderr-{time.monotonic_ns()}.log"
+        self._stderr = open(self.stderr_path, "wb")  # noqa: SIM115 - closed in close()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "treetraits", "run", "--config", str(config), *args],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=self._stderr,
+            preexec_fn=preexec_fn,
+        )
+        self._thread = threading.Thread(target=self._listen, daemon=True)
+        self._thread.start()
+
+    def _listen(self) -> None:
+        while not self._done.is_set():
+            try:
+                data = self.sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            with self._lock:
+                self.messages.append(data.decode())
+
+    def sent(self) -> list[str]:
+        with self._lock:
+            return list(self.messages)
+
+    def statuses(self) -> list[str]:
+        return [
+            line[len("STATUS=") :]
+            for m in self.sent()
+            for line in m.splitlines()
+            if line.startswith("STATUS=")
+        ]
+
+    def wait_for(self, predicate, timeout: float, what: str) -> str:
+        """The first STATUS line matching `predicate`, waiting up to `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for status in self.statuses():
+                if predicate(status):
+                    return status
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.1)
+        raise AssertionError(f"no STATUS {what}; got {self.statuses()[-3:]}; {self.stderr()}")
+
+    def wait_ready(self) -> None:
+        deadline = time.monotonic() + START_S
+        while not any("READY=1" in m for m in self.sent()):
+            assert self.proc.poll() is None, self.stderr()
+            assert time.monotonic() < deadline, "no READY=1"
+            time.sleep(0.05)
+
+    def stderr(self) -> str:
+        return self.stderr_path.read_text(errors="replace")[-3000:]
+
+    def terminate(self) -> tuple[int, float]:
+        start = time.monotonic()
+        self.proc.send_signal(signal.SIGTERM)
+        code = self.proc.wait(timeout=30)
+        return code, time.monotonic() - start
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        self._done.set()
+        self._thread.join(2.0)
+        self.sock.close()
+        self._stderr.close()
+
+
+def scans_in(status: str) -> int:
+    match = re.search(r"\bscans=(\d+)", status)
+    return int(match.group(1)) if match else -1
+
+
+def counter(status: str, name: str) -> int:
+    match = re.search(rf"\b{name}=(\d+)", status)
+    return int(match.group(1)) if match else -1
+
+
+def rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS")
+
+
+def open_db(path: Path) -> sqlite3.Connection:
+    db = sqlite3.connect(path)
+    assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    return db
+
+
+def blast_foreign(port: int, count: int) -> None:
+    """Datagrams shaped like LiDAR data, from an address that is not the sensor's."""
+    payload = bytes(1200) + b"\0\0\0\0\x37\x22"
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.2", 0))
+        for i in range(count):
+            s.sendto(payload, ("127.0.0.1", port))
+            if i % 200 == 199:
+                time.sleep(0.005)
+
+
+def test_live_survey_end_to_end(survey, tmp_path):
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    config = write_config(tmp_path, survey, player)
+    service = Service(tmp_path, config, "--record")
+    try:
+        service.wait_ready()
+        player.start()
+        blaster = threading.Thread(target=blast_foreign, args=(player.data_port, 5000))
+        blaster.start()
+        assert player.wait(timeout=survey.duration_s + 30)
+        blaster.join()
+        last = service.wait_for(lambda s: counter(s, "foreign") >= 4000, 10, "with foreign")
+        rss = rss_kib(service.proc.pid)
+        code, took = service.terminate()
+    finally:
+        player.close()
+        service.close()
+    assert code == 0, service.stderr()
+    assert took < 5.0
+    assert rss < 2_000_000  # kiB: bounded despite the flood (the queues are)
+
+    sent = service.sent()
+    assert sent[0].startswith("READY=1\nSTATUS=OK")  # once every source was open
+    assert sum(m == "WATCHDOG=1" for m in sent) >= 3
+    assert sent[-1].startswith("STOPPING=1\nSTATUS=")
+    statuses = service.statuses()
+    playing = [s for s in statuses if scans_in(s) > 0 and "silent" not in s]
+    assert playing and all(s.startswith("OK ") for s in playing)
+    assert "lidar=ok camera=ok gnss=ok wheels=ok" in playing[-1]
+    assert counter(last, "dropped") == 0
+
+    run = (tmp_path / "out" / "runs" / "latest").resolve()
+    db = open_db(run / "traits.sqlite")
+    scans = db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0]
+    assert scans >= 0.8 * survey.duration_s * 10  # 10 Hz, the first and last ones aside
+    facts = dict(db.execute("SELECT key, value FROM run"))
+    assert facts["input"] == "live" and facts["world_frame"] == "utm"
+    rows = (run / "trees.csv").read_text().splitlines()
+    assert rows[0].startswith("tree_id,field_id,row,easting,northing")
+    matched = [r.split(",")[1] for r in rows[1:] if r.split(",")[1]]
+    assert len(matched) >= 4 and len(set(matched)) == len(matched)
+    geojson = json.loads((run / "trees.geojson").read_text())
+    assert len(geojson["features"]) == len(rows) - 1
+    assert any(f["properties"]["ndvi"] for f in geojson["features"])  # the camera was used
+
+    recordings = sorted((tmp_path / "recordings").glob("*.mcap"))
+    assert len(recordings) == 1
+    with rec.read_recording(recordings[0]) as recording:
+        topics = [m.topic for m in recording]
+        assert not recording.truncated
+    assert topics.count(rec.LIDAR_PACKETS) == player.counters["lidar_sent"]
+    assert {rec.CAMERA_JPEG, rec.GNSS_NMEA, rec.WHEELS_JACKAL} <= set(topics)
+
+
+def test_gnss_unplugged_then_kill_9_and_restart(survey, tmp_path):
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    config = write_config(tmp_path, survey, player, camera="enabled = false")
+    service = Service(tmp_path, config)
+    try:
+        service.wait_ready()
+        player.start()
+        before = service.wait_for(lambda s: scans_in(s) >= 20, 30, "with 20 scans")
+        assert "camera" not in before  # disabled: not reported
+        player.close_gnss()
+        degraded = service.wait_for(
+            lambda s: s.startswith("DEGRADED") and "gnss disconnected" in s, 10, "gnss gone"
+        )
+        assert "lidar=ok" in degraded and "gnss=disconnected" in degraded
+        # The rest goes on: LiDAR scans are still processed without the receiver.
+        service.wait_for(
+            lambda s: "gnss disconnected" in s and scans_in(s) >= scans_in(degraded) + 10,
+            10,
+            "with scans going on",
+        )
+        killed_run = (tmp_path / "out" / "runs" / "latest").resolve()
+        service.proc.send_signal(signal.SIGKILL)
+        assert service.proc.wait(timeout=10) == -signal.SIGKILL
+    finally:
+        player.close()
+        service.close()
+
+    db = open_db(killed_run / "traits.sqlite")  # opens clean: WAL recovered
+    scans = db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0]
+    assert scans >= 20
+    db.close()
+
+    restarted = Service(tmp_path, config)
+    try:
+        restarted.wait_ready()
+        restarted.wait_for(lambda s: "gnss disconnected" in s, 10, "naming the missing gnss")
+        code, took = restarted.terminate()
+    finally:
+        restarted.close()
+    assert code == 0 and took < 5.0, restarted.stderr()
+    new_run = (tmp_path / "out" / "runs" / "latest").resolve()
+    assert new_run != killed_run and new_run.parent == killed_run.parent
+    open_db(killed_run / "traits.sqlite")
+    open_db(new_run / "traits.sqlite")
+
+
+def test_a_full_disk_degrades_without_corrupting_the_store(survey, tmp_path):
+    """A tiny file size limit stands in for a full disk: with SIGXFSZ ignored, a write past
+    RLIMIT_FSIZE fails with EFBIG, as a write to a full disk fails with ENOSPC."""
+    limit = 256 * 1024
+
+    def small_files() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    config = write_config(tmp_path, survey, player, camera="enabled = false")
+    service = Service(tmp_path, config, preexec_fn=small_files)
+    try:
+        service.wait_ready()
+        player.start()
+        full = service.wait_for(
+            lambda s: "traits.sqlite: scan not committed" in s, survey.duration_s + 20, "full"
+        )
+        assert full.startswith("DEGRADED") and "lidar=ok" in full
+        code, took = service.terminate()
+    finally:
+        player.close()
+        service.close()
+    assert code == 0 and took < 5.0, service.stderr()
+    assert "scan not committed" in service.stderr()  # the log names the file and the error
+    run = (tmp_path / "out" / "runs" / "latest").resolve()
+    db = open_db(run / "traits.sqlite")
+    assert db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0] > 0
+    assert all(p.stat().st_size <= limit for p in run.iterdir())
+
+
+def test_a_config_error_names_the_key_and_exits_2(survey, tmp_path):
+    config = write_config(tmp_path, survey, None, lidar="data_port = 70000")
+    result = subprocess.run(
+        [sys.executable, "-m", "treetraits", "run", "--config", str(config)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=START_S,
+    )
+    assert result.returncode == 2
+    assert "lidar.data_port must be a port in 1..65535, got 70000" in result.stderr
+    assert "Traceback" not in result.stderr
