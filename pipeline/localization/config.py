@@ -47,6 +47,9 @@ class LocalizationConfig:
     cog_min_speed_mps: float = 0.3
     cog_max_yaw_rate: float = math.radians(10.0)
     cog_velocity_sigma_mps: float = 0.05
+    # The heading counts as known once its sigma is below this. Until then position fixes
+    # do not move yaw, and the first heading measurement is taken as it is.
+    known_yaw_sigma_rad: float = math.radians(20.0)
     # With no heading source at all: the heading the robot starts with (ENU, radians
     # from east; a stock Jackal has no earth-referenced heading) and how little we trust it.
     initial_yaw_rad: float = 0.0

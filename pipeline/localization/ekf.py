@@ -59,10 +59,21 @@ class PoseFilter:
         self._ekf.P = jacobian @ self._ekf.P @ jacobian.T + q
 
     def update_antenna(
-        self, z: np.ndarray, covariance: np.ndarray, lever_arm: np.ndarray, gate_chi2: float
+        self,
+        z: np.ndarray,
+        covariance: np.ndarray,
+        lever_arm: np.ndarray,
+        gate_chi2: float,
+        observe_yaw: bool = True,
     ) -> Innovation:
         """A GNSS position of the antenna, which sits at `lever_arm` (x forward, y left,
-        metres) from the robot centre."""
+        metres) from the robot centre.
+
+        With `observe_yaw` False the update moves the position only. While the heading is
+        unknown (a wide prior), the linearised position update can swing yaw to a wrong
+        solution that later headings are then gated against (a robot that starts by turning
+        ends up mapped backwards); the lever arm's unknown direction is added to the noise.
+        """
         ox, oy = float(lever_arm[0]), float(lever_arm[1])
 
         def h(state: np.ndarray) -> np.ndarray:
@@ -71,8 +82,13 @@ class PoseFilter:
 
         def jacobian(state: np.ndarray) -> np.ndarray:
             c, s = math.cos(state[2]), math.sin(state[2])
-            return np.array([[1.0, 0.0, -s * ox - c * oy], [0.0, 1.0, c * ox - s * oy]])
+            yaw_column = (-s * ox - c * oy, c * ox - s * oy) if observe_yaw else (0.0, 0.0)
+            return np.array([[1.0, 0.0, yaw_column[0]], [0.0, 1.0, yaw_column[1]]])
 
+        if not observe_yaw:
+            self._ekf.P[:2, 2] = 0.0
+            self._ekf.P[2, :2] = 0.0
+            covariance = np.asarray(covariance, float) + np.eye(2) * (ox * ox + oy * oy)
         return self._gated_update(
             np.asarray(z, float), covariance, h, jacobian, np.subtract, gate_chi2
         )
@@ -87,6 +103,17 @@ class PoseFilter:
         return self._gated_update(
             np.array([yaw]), np.array([[sigma**2]]), h, jacobian, _wrap_yaw_residual, gate_chi2
         )
+
+    @property
+    def yaw_sigma(self) -> float:
+        return math.sqrt(max(float(self._ekf.P[2, 2]), 0.0))
+
+    def reset_yaw(self, yaw: float, sigma: float) -> None:
+        """Take a heading as it is, forgetting the old one and its correlations."""
+        self._ekf.x[2] = wrap_angle(yaw)
+        self._ekf.P[2, :] = 0.0
+        self._ekf.P[:, 2] = 0.0
+        self._ekf.P[2, 2] = sigma**2
 
     def reset_position(self, x: float, y: float, covariance_xy: np.ndarray) -> None:
         """Jump to a trusted position, forgetting the correlation with yaw."""

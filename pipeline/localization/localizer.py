@@ -45,6 +45,7 @@ class LocalizerStats:
     fixes_rejected: int = 0
     fixes_unusable: int = 0
     position_resets: int = 0
+    heading_resets: int = 0  # first heading once unknown, or several in a row disagreeing
     headings_used: int = 0
     courses_used: int = 0
 
@@ -76,6 +77,7 @@ class Localizer:
         self._last_wheels: WheelSample | None = None
         self._motion = _Motion()
         self._rejected_in_a_row = 0
+        self._headings_rejected_in_a_row = 0
         self._t = 0
         self._odom_history = _History()
         self._utm_history = _History()
@@ -136,9 +138,7 @@ class Localizer:
         else:
             verdict = self._update(easting, northing, covariance)
             if heading is not None and verdict.used:
-                result = self._filter.update_yaw(heading[0], heading[1], self.config.fix_gate_chi2)
-                self.stats.headings_used += int(result.applied and heading[2] == "heading")
-                self.stats.courses_used += int(result.applied and heading[2] == "course")
+                self._add_heading(*heading)
         self._record(fix.t_host)
         return verdict
 
@@ -185,6 +185,14 @@ class Localizer:
             return None
         return _se2(utm.x, utm.y, utm.yaw) @ np.linalg.inv(_se2(odom.x, odom.y, odom.yaw))
 
+    def settled_until(self, frame: str = "utm") -> int | None:
+        """Poses at times up to this one are final: `pose_at` will give the same answer
+        whatever comes in later. The history only grows at its end, but several inputs at
+        one instant replace its newest pose (`_append`), so what is final is up to the
+        second newest entry. None while the history has fewer than two entries."""
+        times = (self._utm_history if frame == "utm" else self._odom_history).times
+        return times[-2] if len(times) >= 2 else None
+
     @property
     def first_utm_time(self) -> int | None:
         """The earliest time still in the history with a pose in `utm`."""
@@ -226,6 +234,34 @@ class Localizer:
             return true_heading_to_grid_yaw(fix.course_deg, convergence), sigma, "course"
         return None
 
+    @property
+    def heading_known(self) -> bool:
+        return (
+            self._filter is not None and self._filter.yaw_sigma <= self.config.known_yaw_sigma_rad
+        )
+
+    def _add_heading(self, yaw: float, sigma: float, kind: str) -> None:
+        applied = False
+        if not self.heading_known:
+            self._filter.reset_yaw(yaw, sigma)
+            self.stats.heading_resets += 1
+            applied = True
+        else:
+            result = self._filter.update_yaw(yaw, sigma, self.config.fix_gate_chi2)
+            if result.applied:
+                self._headings_rejected_in_a_row = 0
+                applied = True
+            else:
+                # Several headings in a row disagree with ours: ours is what went wrong.
+                self._headings_rejected_in_a_row += 1
+                if self._headings_rejected_in_a_row >= self.config.max_rejected_in_a_row:
+                    self._filter.reset_yaw(yaw, sigma)
+                    self._headings_rejected_in_a_row = 0
+                    self.stats.heading_resets += 1
+                    applied = True
+        self.stats.headings_used += int(applied and kind == "heading")
+        self.stats.courses_used += int(applied and kind == "course")
+
     def _start(self, fix, easting, northing, covariance, heading) -> FixVerdict:
         c = self.config
         yaw, yaw_sigma = (
@@ -242,7 +278,11 @@ class Localizer:
     def _update(self, easting, northing, covariance) -> FixVerdict:
         c = self.config
         result = self._filter.update_antenna(
-            np.array([easting, northing]), covariance, self._lever_arm, c.fix_gate_chi2
+            np.array([easting, northing]),
+            covariance,
+            self._lever_arm,
+            c.fix_gate_chi2,
+            observe_yaw=self.heading_known,
         )
         if result.applied:
             self._rejected_in_a_row = 0
