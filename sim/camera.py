@@ -66,13 +66,14 @@ class Survey3Emulator:
             calibration.T_camera_lidar
         )
 
-    def render(self, world_from_base: np.ndarray) -> np.ndarray:
-        """The BGR uint8 image the camera sees with base_link at `world_from_base` (4x4)."""
+    def render(self, world_from_base: np.ndarray, t_ns: int | None = None) -> np.ndarray:
+        """The BGR uint8 image the camera sees with base_link at `world_from_base` (4x4),
+        at device time `t_ns` (places swaying trees; needed only in wind)."""
         camera = self.calibration.camera
         world_from_camera = world_from_base @ self._base_from_camera
         directions = self._rays_camera @ world_from_camera[:3, :3].T
         origins = np.broadcast_to(world_from_camera[:3, 3], directions.shape)
-        _, label = self.scene.cast(np.ascontiguousarray(origins), directions)
+        _, label = self.scene.cast(np.ascontiguousarray(origins), directions, t_ns)
         reflectance = np.empty((len(label), 3))
         reflectance[label == 0] = SOIL
         reflectance[label > 0] = FOLIAGE
@@ -92,10 +93,10 @@ class Survey3Emulator:
             image = cv2.resize(image, size, interpolation=cv2.INTER_NEAREST)
         return image
 
-    def jpeg(self, world_from_base: np.ndarray) -> bytes:
+    def jpeg(self, world_from_base: np.ndarray, t_ns: int | None = None) -> bytes:
         ok, data = cv2.imencode(
             ".jpg",
-            self.render(world_from_base),
+            self.render(world_from_base, t_ns),
             [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality],
         )
         if not ok:

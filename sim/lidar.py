@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import open3d as o3d
@@ -35,30 +36,87 @@ class LidarSettings:
     optics: m.LaserModel = m.VLP16
 
 
+class Sway(Protocol):
+    """A mesh bending about its base in the wind (`sim.orchard.TreeSway`)."""
+
+    base: tuple[float, float, float]
+    max_offset: float  # m: the farthest any point of the mesh moves horizontally
+
+    def shear(self, t_s: np.ndarray) -> np.ndarray: ...  # (N, 2) per metre above base
+
+
 class Scene:
-    """Triangle meshes in the world frame with a label per mesh (0 = ground)."""
+    """Triangle meshes in the world frame with a label per mesh (0 = ground).
+
+    A mesh added with a `sway` moves: at time t its point q is at
+    q + shear(t) * (q_z - base_z) (horizontal). A shear maps straight lines to straight
+    lines, so each ray is moved into the mesh's rest frame instead and cast there, against
+    a scene of its own; the ray parameter (the distance) is the same in both frames."""
 
     def __init__(self) -> None:
         self._scene = o3d.t.geometry.RaycastingScene()
         self._labels: list[int] = []
+        # (own scene, label, sway, reach: horizontal radius about the base it can occupy)
+        self._moving: list[tuple[o3d.t.geometry.RaycastingScene, int, Sway, float]] = []
 
-    def add(self, vertices: np.ndarray, triangles: np.ndarray, label: int) -> None:
+    def add(
+        self, vertices: np.ndarray, triangles: np.ndarray, label: int, sway: Sway | None = None
+    ) -> None:
         mesh = o3d.t.geometry.TriangleMesh()
         mesh.vertex.positions = o3d.core.Tensor(np.asarray(vertices, dtype=np.float32))
         mesh.triangle.indices = o3d.core.Tensor(np.asarray(triangles, dtype=np.int32))
+        if sway is not None:
+            own = o3d.t.geometry.RaycastingScene()
+            own.add_triangles(mesh)
+            spread = np.hypot(*(np.asarray(vertices)[:, :2] - sway.base[:2]).T).max()
+            self._moving.append((own, label, sway, float(spread) + sway.max_offset + 0.05))
+            return
         geometry_id = self._scene.add_triangles(mesh)
         assert geometry_id == len(self._labels)
         self._labels.append(label)
 
-    def cast(self, origins: np.ndarray, directions: np.ndarray):
-        """Distance along each unit ray (inf for a miss) and the label hit (-1 for none)."""
+    @property
+    def moving(self) -> bool:
+        return bool(self._moving)
+
+    def cast(self, origins: np.ndarray, directions: np.ndarray, t_ns=None):
+        """Distance along each unit ray (inf for a miss) and the label hit (-1 for none).
+        `t_ns` (one time or one per ray, ns) places the swaying meshes; required if any."""
         rays = np.hstack([origins, directions]).astype(np.float32)
         hits = self._scene.cast_rays(o3d.core.Tensor(rays))
         distance = hits["t_hit"].numpy()
         geometry = hits["geometry_ids"].numpy().astype(np.int64)
         labels = np.asarray([*self._labels, -1])
         hit = np.isfinite(distance)
-        return distance, np.where(hit, labels[np.where(hit, geometry, -1)], -1)
+        label = np.where(hit, labels[np.where(hit, geometry, -1)], -1)
+        if not self._moving:
+            return distance, label
+        if t_ns is None:
+            raise ValueError("a scene with swaying meshes needs the rays' times (t_ns)")
+        t_s = np.broadcast_to(np.asarray(t_ns, dtype=np.float64) / 1e9, (len(origins),))
+        origins = np.asarray(origins, dtype=np.float64)
+        directions = np.asarray(directions, dtype=np.float64)
+        for own, mesh_label, sway, reach in self._moving:
+            # Only the rays passing within reach of the tree's axis (in x-y) can hit it.
+            axis = np.asarray(sway.base[:2]) - origins[:, :2]
+            flat = directions[:, :2]
+            along = np.clip(
+                (axis * flat).sum(axis=1) / np.maximum((flat * flat).sum(axis=1), 1e-12), 0, None
+            )
+            near = np.hypot(*(flat * along[:, None] - axis).T) < reach
+            if not near.any():
+                continue
+            o, d = origins[near], directions[near]
+            shear = sway.shear(t_s[near])  # (n, 2)
+            o[:, :2] -= shear * (o[:, 2:3] - sway.base[2])
+            d[:, :2] -= shear * d[:, 2:3]
+            rays = np.hstack([o, d]).astype(np.float32)
+            t_hit = own.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+            closer = t_hit < distance[near]
+            index = np.flatnonzero(near)[closer]
+            distance[index] = t_hit[closer]
+            label[index] = mesh_label
+        return distance, label
 
 
 class Vlp16Emulator:
@@ -126,7 +184,7 @@ class Vlp16Emulator:
         rotation, translation = world_from_lidar[:, :3, :3], world_from_lidar[:, :3, 3]
         origins = np.einsum("nij,nj->ni", rotation, origin) + translation
         directions = np.einsum("nij,nj->ni", rotation, direction)
-        distance, label = self.scene.cast(origins, directions)
+        distance, label = self.scene.cast(origins, directions, t_fire.reshape(-1))
 
         distance = distance + self.rng.normal(0, s.range_sigma_m, distance.shape)
         keep = (

@@ -146,3 +146,88 @@ def ground_mesh(ground: Ground, x_range, y_range) -> tuple[np.ndarray, np.ndarra
     z = ground.height(corners[:, 0], corners[:, 1])
     vertices = np.column_stack([corners, z]).astype(np.float32)
     return vertices, np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+
+
+# ---- wind ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class WindSettings:
+    """Crowns swaying in the wind while the robot drives (off at 0 m/s, the paper's
+    simulated cases; its field day had 16 km/h = 4.4 m/s with gusts to 40 km/h).
+
+    Each tree leans downwind and sways about that lean at its own frequency and phase,
+    bending about its base: a point h above the base moves by (h / tree height) times the
+    crown top's displacement (a shear, so the ray-cast stays exact: see `sim.lidar.Scene`).
+    """
+
+    speed_mps: float = 0.0
+    direction_deg: float = 90.0  # where the wind blows towards, ccw from +x (the path)
+    # Crown-top displacement (m) per (m/s)^2: drag grows with the square of the speed.
+    # 0.008 gives ~15 cm at 4.4 m/s, what a dense citrus crown's top does in a breeze.
+    lean_per_speed2: float = 0.008
+    sway: float = 0.6  # oscillation about the mean lean, as a fraction of the lean
+    cross_sway: float = 0.3  # oscillation across the wind, as a fraction of the lean
+    frequency_hz: tuple[float, float] = (0.3, 0.8)  # each tree's own, drawn uniformly
+
+
+@dataclass(frozen=True)
+class TreeSway:
+    """One tree's motion: `shear(t)` is the horizontal displacement per metre above
+    `base` (x, y, z of the trunk foot) at times t (s)."""
+
+    base: tuple[float, float, float]
+    height: float
+    lean: tuple[float, float]  # mean crown-top displacement (m), x and y
+    sway: tuple[float, float]  # oscillation amplitude along and across the wind (m)
+    across: tuple[float, float]  # unit vector across the wind
+    frequency_hz: tuple[float, float]
+    phase: tuple[float, float]
+
+    @property
+    def max_offset(self) -> float:
+        """The farthest the crown top moves from rest (m)."""
+        lean = math.hypot(*self.lean)
+        return math.hypot(lean + self.sway[0], self.sway[1])
+
+    def shear(self, t_s) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        along = self.sway[0] * np.sin(2 * math.pi * self.frequency_hz[0] * t + self.phase[0])
+        cross = self.sway[1] * np.sin(2 * math.pi * self.frequency_hz[1] * t + self.phase[1])
+        unit = np.array(self.lean) / max(math.hypot(*self.lean), 1e-12)
+        top = (
+            np.array(self.lean)[None, :]
+            + along[:, None] * unit[None, :]
+            + cross[:, None] * np.array(self.across)[None, :]
+        )
+        return top / self.height
+
+
+def tree_sways(
+    settings: WindSettings, truths: list[TreeTruth], ground: Ground, rng: np.random.Generator
+) -> list[TreeSway | None]:
+    """Each tree's sway (None for every tree in still air)."""
+    if settings.speed_mps < 0:
+        raise ValueError(f"wind speed must be >= 0 m/s, got {settings.speed_mps}")
+    if settings.speed_mps == 0:
+        return [None] * len(truths)
+    heading = math.radians(settings.direction_deg)
+    downwind = np.array([math.cos(heading), math.sin(heading)])
+    across = (-downwind[1], downwind[0])
+    top = settings.lean_per_speed2 * settings.speed_mps**2
+    sways: list[TreeSway | None] = []
+    for t in truths:
+        frequency = rng.uniform(*settings.frequency_hz, size=2)
+        phase = rng.uniform(0, 2 * math.pi, size=2)
+        sways.append(
+            TreeSway(
+                base=(t.x, t.y, float(ground.height(t.x, t.y))),
+                height=t.height,
+                lean=tuple(float(v) for v in downwind * top),
+                sway=(top * settings.sway, top * settings.cross_sway),
+                across=(float(across[0]), float(across[1])),
+                frequency_hz=(float(frequency[0]), float(frequency[1])),
+                phase=(float(phase[0]), float(phase[1])),
+            )
+        )
+    return sways

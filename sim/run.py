@@ -23,7 +23,16 @@ from drivers.calibration import Calibration, load_calibration
 from sim.camera import CameraSettings, Survey3Emulator
 from sim.gnss import GnssEmulator, GnssSettings, UtmZone
 from sim.lidar import LidarSettings, Scene, Vlp16Emulator
-from sim.orchard import Ground, TreeTruth, grid_orchard, ground_mesh, measure_truth, tree_mesh
+from sim.orchard import (
+    Ground,
+    TreeTruth,
+    WindSettings,
+    grid_orchard,
+    ground_mesh,
+    measure_truth,
+    tree_mesh,
+    tree_sways,
+)
 from sim.paths import DriveSettings, drive, trajectory_function, waypoints
 from sim.wheels import JackalMcuEmulator, WheelSettings
 
@@ -45,12 +54,16 @@ class SurveySettings:
     seed: int = 0
     slope: float = 0.0  # ground slope along the path (rise over run)
     goal: float = 23.0  # m ahead of the start, as in the paper
+    # Shift of the orchard across the path (m): with an odd number of columns the centre
+    # lane would run through the middle column; half a spacing puts the lanes between.
+    offset_y: float = 0.0
     camera_rate_hz: float = 10.0
     camera: CameraSettings = field(default_factory=lambda: CameraSettings(render_scale=0.25))
     lidar: LidarSettings = field(default_factory=LidarSettings)
     gnss: GnssSettings = field(default_factory=GnssSettings)
     wheels: WheelSettings = field(default_factory=WheelSettings)
     drive: DriveSettings = field(default_factory=DriveSettings)
+    wind: WindSettings = field(default_factory=WindSettings)  # still air by default
 
 
 @dataclass(frozen=True)
@@ -68,7 +81,7 @@ def build_orchard(settings: SurveySettings, rng: np.random.Generator):
     ground = Ground(slope_x=settings.slope)
     specs = grid_orchard(settings.columns, settings.rows, settings.width, settings.length, rng)
     # grid_orchard lays rows along +x from y = 0; centre the columns on the path.
-    offset_y = -(settings.columns - 1) * settings.width / 2
+    offset_y = -(settings.columns - 1) * settings.width / 2 + settings.offset_y
     # Table I names the rows along the path front, middle and back.
     names = ["front", "middle", "back"] if settings.rows == 3 else None
     specs = [
@@ -83,11 +96,16 @@ def build_orchard(settings: SurveySettings, rng: np.random.Generator):
     ]
     scene = Scene()
     scene.add(*ground_mesh(ground, (-40, 60), (-40, 40)), label=0)
-    truths = []
-    for i, spec in enumerate(specs):
+    meshes, truths = [], []
+    for spec in specs:
         vertices, triangles = tree_mesh(spec, ground, rng)
-        scene.add(vertices, triangles, label=i + 1)
+        meshes.append((vertices, triangles))
         truths.append(measure_truth(spec, vertices, ground))
+    # The sway's draws come from a generator of their own: the same seed grows the same
+    # trees with and without wind, so the two runs compare like with like.
+    sways = tree_sways(settings.wind, truths, ground, np.random.default_rng([settings.seed, 1]))
+    for i, ((vertices, triangles), sway) in enumerate(zip(meshes, sways, strict=True)):
+        scene.add(vertices, triangles, label=i + 1, sway=sway)
     return scene, truths, ground
 
 
@@ -131,7 +149,7 @@ def simulate_survey(
                 (
                     int(t) + LATENCY_NS["camera"],
                     rec.CAMERA_JPEG,
-                    camera.jpeg(_world_from_base(x, y, z, yaw)),
+                    camera.jpeg(_world_from_base(x, y, z, yaw), int(t)),
                     int(t),
                 )
             )

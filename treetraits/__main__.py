@@ -4,4 +4,6 @@ import sys
 
 from treetraits.cli import main
 
-sys.exit(main())
+# Guarded: `treetraits eval` starts worker processes that import this module again.
+if __name__ == "__main__":
+    sys.exit(main())

@@ -15,6 +15,7 @@ from treetraits.cli import (
     camera,
     config,
     doctor,
+    eval,
     fuse,
     lidar,
     nmea,
@@ -49,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     config.register(commands)
     play.register(commands)
     doctor.register(commands)
+    eval.register(commands)
     return parser
 
 

@@ -10,6 +10,7 @@ from tqdm import tqdm
 
 from drivers.calibration import load_calibration
 from sim.gnss import GnssSettings
+from sim.orchard import WindSettings
 from sim.paths import PATHS
 from sim.run import SurveySettings, simulate_survey
 from treetraits.errors import ConfigError
@@ -63,6 +64,22 @@ def register(commands: argparse._SubParsersAction) -> None:
     sim.add_argument("--slope", type=float, default=0.0, help="ground slope along the path")
     sim.add_argument("--goal", type=float, default=23.0, help="metres to drive (default 23)")
     sim.add_argument(
+        "--wind",
+        type=float,
+        default=0.0,
+        metavar="M/S",
+        help="wind speed: crowns lean downwind and sway (default 0, still air; the "
+        "paper's field day: 4.4 m/s)",
+    )
+    sim.add_argument(
+        "--wind-direction",
+        type=float,
+        default=90.0,
+        metavar="DEG",
+        help="where the wind blows towards, degrees counter-clockwise from the path's "
+        "direction (default 90: across the path, to the left)",
+    )
+    sim.add_argument(
         "--calibration",
         type=Path,
         help="calibration v1 JSON (default: the bundled CitrusFarm calibration)",
@@ -90,6 +107,8 @@ def run_sim(args: argparse.Namespace) -> int:
         except ValueError:
             raise ConfigError(f"--outage must look like 10:25, got {text!r}") from None
         outages.append((start, end))
+    if not 0 <= args.wind < 60:
+        raise ConfigError(f"--wind is a speed in m/s in [0, 60), got {args.wind:g}")
     settings = SurveySettings(
         path=args.path,
         width=width,
@@ -105,6 +124,7 @@ def run_sim(args: argparse.Namespace) -> int:
             dual_antenna=args.dual_antenna,
             outages=tuple(outages),
         ),
+        wind=WindSettings(speed_mps=args.wind, direction_deg=args.wind_direction),
     )
     calibration = load_calibration(args.calibration) if args.calibration else None
     with tqdm(total=100, desc="sim", unit="%", leave=False, disable=None) as bar:

@@ -1,0 +1,180 @@
+"""`treetraits eval`: the scoring on hand-made inputs, and one small case end to end."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+
+import pytest
+
+from sim.run import SurveySettings
+from treetraits.errors import ConfigError
+from treetraits.evaluation import cases as cases_module
+from treetraits.evaluation.cases import CASES, Case, PaperRow, select_cases
+from treetraits.evaluation.metrics import (
+    Detection,
+    TruthTree,
+    nearest_within,
+    position_rmse,
+    row_stats,
+    score_run,
+)
+from treetraits.evaluation.results import MethodSummary, best_method
+from treetraits.evaluation.run import cache_key, parse_methods
+
+TRUTHS = [
+    TruthTree("T1", "front", 100.0, 200.0, 2.0, 2.5),
+    TruthTree("T2", "front", 105.0, 200.0, 2.5, 2.0),
+    TruthTree("T3", "back", 100.0, 210.0, 3.0, 3.0),
+]
+
+
+def test_nearest_within_gate_many_to_one_and_unplaced():
+    points = [[0.0, 0.0], [0.9, 0.0], [5.0, 5.0], [math.nan, math.nan], [2.0, 0.0]]
+    targets = [[0.0, 0.1], [2.0, 0.0]]
+    # 0.9 m from the first target is nearer than 1.1 m from the second.
+    assert nearest_within(points, targets, 1.0) == [0, 0, None, None, 1]
+    assert nearest_within([], targets, 1.0) == []
+    assert nearest_within(points[:1], [], 1.0) == [None]
+
+
+def test_score_run_found_duplicates_false_positives_and_errors():
+    detections = [
+        Detection("a", 100.3, 200.4, 2.2, 2.5),  # T1, 0.5 m off; width +10 %
+        Detection("b", 101.0, 200.0, 9.9, 9.9),  # T1 again, 1.0 m off: a duplicate
+        Detection("c", 100.0, 210.0, 2.7, 3.3),  # T3 exactly; -10 % / +10 %
+        Detection("d", 120.0, 200.0, 2.0, 2.0),  # nowhere near a tree
+        Detection("e", None, None, 2.0, 2.0),  # never placed in UTM
+    ]
+    score = score_run(detections, TRUTHS, gate_m=1.5)
+    assert score.found == 2
+    assert score.duplicates == 1
+    assert [d.tree_id for d in score.false_positives] == ["d", "e"]
+    t1, t2, t3 = score.trees
+    assert t1.detection.tree_id == "a"  # the nearer of the two is the primary one
+    assert t1.width_ape == pytest.approx(10.0)
+    assert t1.height_ape == pytest.approx(0.0)
+    assert t1.position_error_m == pytest.approx(0.5)
+    assert t2.detection is None and t2.width_ape is None
+    assert t3.width_ape == pytest.approx(10.0) and t3.height_ape == pytest.approx(10.0)
+    # sqrt((0.5^2 + 0^2) / 2)
+    assert position_rmse([score]) == pytest.approx(math.sqrt(0.125))
+
+
+def test_row_stats_mape_over_runs_and_missed_trees():
+    run1 = score_run(
+        [Detection("a", 100, 200, 2.2, 2.5), Detection("b", 105, 200, 2.5, 1.8)], TRUTHS
+    )
+    run2 = score_run([Detection("a", 100, 200, 1.9, 2.75)], TRUTHS)
+    front, back = row_stats([run1, run2], ["front", "back"])
+    # front: 4 truth trees over two runs, 3 found; width APEs 10, 0, 5 -> 5;
+    # height APEs 0, 10, 10 -> 6.667
+    assert (front.trees, front.found) == (4, 3)
+    assert front.mape_width == pytest.approx(5.0)
+    assert front.mape_height == pytest.approx(20 / 3)
+    assert front.gt_width_m == pytest.approx(2.25)
+    assert front.width_mean_m == pytest.approx((2.2 + 2.5 + 1.9) / 3)
+    assert front.width_sd_m == pytest.approx(0.3)  # sample sd of 2.2, 2.5, 1.9
+    # back: never found: no MAPE
+    assert (back.trees, back.found) == (2, 0)
+    assert math.isnan(back.mape_width) and math.isnan(back.width_mean_m)
+
+
+def test_best_method_is_lowest_worst_row_and_nan_ranks_last():
+    def s(name, w, h):
+        return MethodSummary(name, w, h, 6, 6, 0, 0, 0.1, 0.1)
+
+    summaries = [s("paper", 12.0, 3.0), s("robust", 4.0, 6.0), s("rph", math.nan, 1.0)]
+    assert best_method(summaries).method == "robust"
+    # Same worst row (5): the lower sum of both wins; a full tie keeps the order given.
+    assert best_method([s("a", 5.0, 4.0), s("b", 1.0, 5.0)]).method == "b"
+    assert best_method([s("a", 5.0, 1.0), s("b", 1.0, 5.0)]).method == "a"
+    assert best_method([s("rph", math.nan, 1.0), s("x", 50.0, 50.0)]).method == "x"
+
+
+def test_cases_hold_the_papers_table():
+    by_name = {c.name: c for c in CASES}
+    assert [c.name for c in select_cases(None)] == [
+        "straight-5x5",
+        "s-5x5",
+        "n-5x5",
+        "straight-4x4",
+        "straight-6x6",
+        "grove-n-5x3",
+    ]
+    s_middle = by_name["s-5x5"].paper_row("middle")
+    assert (s_middle.width_ours, s_middle.height_ours) == (12.14, 14.71)  # the paper's worst
+    grove = by_name["grove-n-5x3"]
+    assert grove.rows == ("1", "2", "3", "4", "5") and grove.survey.columns == 3
+    assert grove.paper_row("5").width_rph == 16.32
+    assert [c.name for c in select_cases("straight")] == [
+        "straight-5x5",
+        "straight-4x4",
+        "straight-6x6",
+    ]
+    with pytest.raises(ConfigError, match="no case named 'diagonal'"):
+        select_cases("diagonal")
+    with pytest.raises(ConfigError, match="unknown 'ransac'"):
+        parse_methods("paper,ransac")
+
+
+def test_cache_key_follows_the_settings():
+    a = SurveySettings(seed=0)
+    assert cache_key(a) == cache_key(SurveySettings(seed=0))
+    assert cache_key(a) != cache_key(SurveySettings(seed=1))
+    assert cache_key(a) != cache_key(dataclasses.replace(a, width=4.0))
+
+
+SMALL = Case(
+    "small",
+    "straight, one row of a 5x5 grid",
+    SurveySettings(path="straight", rows=1, goal=9.0),
+    (PaperRow("1", 1.0, 2.0, 3.0, 4.0),),
+)
+
+
+def test_eval_end_to_end_on_one_small_case(tmp_path, monkeypatch, capsys):
+    from treetraits.cli.eval import register
+
+    monkeypatch.setattr(cases_module, "CASES", (SMALL,))
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    argv = ["eval", "--quick", "--json", "--cases", "small", "--methods", "paper,rph"]
+    args = parser.parse_args([*argv, "--jobs", "2", "--out", str(tmp_path)])
+    assert args.run(args) == 0
+    summary = json.loads(capsys.readouterr().out)
+    for key in (
+        "worst_row_mape_width",
+        "worst_row_mape_height",
+        "trees_found",
+        "trees_total",
+        "duplicates",
+        "position_rmse_m",
+        "cases",
+    ):
+        assert key in summary
+    with open(next((tmp_path / "cases").glob("small-seed0-*.truth.csv"))) as f:
+        truth = list(csv.DictReader(f))
+    assert summary["trees_total"] == len(truth) == 2
+    assert summary["best_method"] in ("paper", "rph")
+    assert 0 <= summary["trees_found"] <= 2
+    assert summary["worst_row_mape_width"] is None or summary["worst_row_mape_width"] < 100
+    assert [c["method"] for c in summary["cases"]] == ["paper", "rph"]
+    assert summary["cases"][0]["rows"][0]["paper_mape_width_ours"] == 1.0
+    assert (tmp_path / "table.md").read_text().startswith("# Table I on the twin")
+    with open(tmp_path / "table.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["case"], r["row"], r["method"]) for r in rows] == [
+        ("small", "1", "paper"),
+        ("small", "1", "rph"),
+    ]
+    png = (tmp_path / "maps" / "small.png").read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 10_000
+    # A rerun reuses the recording (one method: the replay is not what is tested here).
+    rerun = ["eval", "--quick", "--json", "--cases", "small", "--methods", "paper"]
+    args = parser.parse_args([*rerun, "--jobs", "1", "--out", str(tmp_path)])
+    assert args.run(args) == 0
+    assert json.loads(capsys.readouterr().out)["simulated"][0]["cached"] is True

@@ -1,0 +1,76 @@
+"""`treetraits eval`: the paper's Table I reproduced on the digital twin, side by side with
+the published numbers (docs/evaluation.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+from treetraits.errors import ConfigError
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    from treetraits.evaluation.run import DEFAULT_METHODS, METHODS
+
+    ev = commands.add_parser(
+        "eval",
+        help="reproduce the paper's Table I on the twin",
+        description=(
+            "Simulate the paper's cases (5 seeds each), replay them with each method, and "
+            "print Table I beside the paper's numbers: MAPE per row for width and height, "
+            "detections, duplicates, position error, time per scan. Writes OUT/table.md, "
+            "OUT/table.csv, OUT/summary.json and OUT/maps/<case>.png; recordings are cached "
+            "in OUT/cases/ and reused by a rerun with the same settings and software."
+        ),
+    )
+    ev.add_argument("--out", required=True, type=Path, help="output directory")
+    ev.add_argument("--quick", action="store_true", help="one seed per case (= --seeds 1)")
+    ev.add_argument("--seeds", type=int, help="seeds per case, 0..N-1 (default 5)")
+    ev.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    ev.add_argument(
+        "--cases",
+        help="comma list of case names or prefixes, or 'all' (default: the paper's "
+        "simulated cases and the CitrusFarm grove)",
+    )
+    ev.add_argument(
+        "--methods",
+        help=f"comma list of {', '.join(METHODS)} (default {','.join(DEFAULT_METHODS)})",
+    )
+    ev.add_argument(
+        "--jobs", type=int, help=f"worker processes (default: the CPUs, {os.cpu_count()})"
+    )
+    ev.add_argument("--list", action="store_true", help="list the cases and exit")
+    ev.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from treetraits.evaluation.cases import CASES, select_cases
+    from treetraits.evaluation.report import write_report
+    from treetraits.evaluation.run import parse_methods, run_evaluation
+
+    if args.list:
+        for case in CASES:
+            print(f"{case.name:22} {'' if case.default else '(not default) '}{case.title}")
+        return 0
+    if args.quick and args.seeds not in (None, 1):
+        raise ConfigError(f"--quick runs one seed; it cannot go with --seeds {args.seeds}")
+    seeds = 1 if args.quick else (5 if args.seeds is None else args.seeds)
+    if seeds < 1:
+        raise ConfigError(f"--seeds must be >= 1, got {seeds}")
+    if args.jobs is not None and args.jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
+    cases = select_cases(args.cases)
+    methods = parse_methods(args.methods)
+    evaluation = run_evaluation(cases, range(seeds), methods, args.out, args.jobs)
+    report = write_report(evaluation, args.out)
+    if args.json:
+        print(json.dumps(report.summary, indent=1))
+    else:
+        print(report.markdown)
+        print(
+            f"{len(evaluation.simulated)} recordings, {len(evaluation.replayed)} replays in "
+            f"{evaluation.wall_s:.0f} s ({evaluation.jobs} jobs); outputs in {args.out}/"
+        )
+    return 0

@@ -1,0 +1,255 @@
+"""Simulate every (case, seed) once, replay each recording with every method, and score.
+
+Simulating is the slow part (about real time on this machine), so recordings are cached
+in OUT/cases/: the file name carries a key over the survey settings, the software version
+and the simulator's own source and data, and a `.sim.json` marker written last says the
+recording is complete. Work runs in a process pool (spawned: Open3D's threads and fork do
+not mix); a recording's replays are queued as soon as it exists, longest cases first.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+
+from tqdm import tqdm
+
+import sim
+from sim.run import SurveySettings
+from treetraits import __version__
+from treetraits.errors import ConfigError
+from treetraits.evaluation.cases import Case
+from treetraits.evaluation.metrics import Detection, detections_from_trees
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    replay_method: str  # ReplayOptions.method
+    traits: str  # ReplayOptions.traits
+    description: str
+
+
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method("paper", "paper", "paper", "the paper's method and traits (keep the maximum)"),
+        Method("robust", "paper", "robust", "the paper's detection and tracking, robust traits"),
+        Method("rph", "rph", "paper", "RPH baseline as shipped (the one Table I compares)"),
+        Method("rph-vlp16", "rph-vlp16", "paper", "RPH retuned for single VLP-16 scans"),
+    )
+}
+DEFAULT_METHODS = ("paper", "robust", "rph")
+
+
+@dataclass(frozen=True)
+class Simulated:
+    case: str
+    seed: int
+    recording: Path
+    truth_csv: Path
+    driving_s: float  # simulated time
+    simulate_s: float  # wall time it took (when it was made, if cached)
+    cached: bool
+
+
+@dataclass(frozen=True)
+class Replayed:
+    case: str
+    seed: int
+    method: str
+    detections: tuple[Detection, ...]
+    scans: int
+    replay_s: float  # wall time of run_replay
+
+    @property
+    def s_per_scan(self) -> float:
+        return self.replay_s / self.scans if self.scans else float("nan")
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    cases: tuple[Case, ...]
+    seeds: tuple[int, ...]
+    methods: tuple[str, ...]
+    simulated: tuple[Simulated, ...]
+    replayed: tuple[Replayed, ...]
+    wall_s: float
+    jobs: int
+
+
+def parse_methods(spec: str | None) -> tuple[str, ...]:
+    if spec is None:
+        return DEFAULT_METHODS
+    names = tuple(dict.fromkeys(w.strip() for w in spec.split(",") if w.strip()))
+    unknown = [n for n in names if n not in METHODS]
+    if unknown or not names:
+        raise ConfigError(
+            f"--methods: unknown {', '.join(map(repr, unknown)) or 'empty list'}; "
+            f"choose from {', '.join(METHODS)}"
+        )
+    return names
+
+
+# What a recording is made of: the simulator's modules and its bundled data (not every
+# file under sim/: another tool living there must not invalidate the cache).
+SIMULATOR_FILES = (
+    "run.py",
+    "orchard.py",
+    "paths.py",
+    "lidar.py",
+    "camera.py",
+    "gnss.py",
+    "wheels.py",
+)
+
+
+def cache_key(settings: SurveySettings) -> str:
+    """Over the settings, the version, and the simulator's code and data: a change in any
+    makes a new recording rather than reusing a stale one."""
+    digest = hashlib.sha256()
+    digest.update(json.dumps(dataclasses.asdict(settings), sort_keys=True, default=str).encode())
+    digest.update(__version__.encode())
+    sim_dir = Path(sim.__file__).resolve().parent
+    files = [sim_dir / name for name in SIMULATOR_FILES] + sorted(sim_dir.glob("data/*"))
+    for path in files:
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def recording_path(cases_dir: Path, case: Case, seed: int) -> Path:
+    return cases_dir / f"{case.name}-seed{seed}-{cache_key(case.settings(seed))}.mcap"
+
+
+def simulate(case: Case, seed: int, cases_dir: Path) -> Simulated:
+    """The recording of (case, seed), simulated unless the cache holds it."""
+    from sim.run import simulate_survey
+
+    path = recording_path(cases_dir, case, seed)
+    marker = path.with_suffix(".sim.json")
+    truth = path.with_suffix(".truth.csv")
+    if marker.is_file() and path.is_file() and truth.is_file():
+        facts = json.loads(marker.read_text())
+        return Simulated(
+            case.name, seed, path, truth, facts["driving_s"], facts["simulate_s"], True
+        )
+    start = time.perf_counter()
+    result = simulate_survey(path, case.settings(seed))
+    elapsed = time.perf_counter() - start
+    facts = {
+        "case": case.name,
+        "seed": seed,
+        "driving_s": result.duration_s,
+        "simulate_s": round(elapsed, 2),
+        "software": f"treetraits {__version__}",
+        "settings": dataclasses.asdict(case.settings(seed)),
+    }
+    temp = marker.with_suffix(".tmp")
+    temp.write_text(json.dumps(facts, indent=1, default=str))
+    os.replace(temp, marker)  # last: its presence means the recording is whole
+    return Simulated(case.name, seed, path, truth, result.duration_s, elapsed, False)
+
+
+def replay(sim: Simulated, method: str, runs_dir: Path) -> Replayed:
+    from pipeline.replay import ReplayOptions, run_replay
+
+    m = METHODS[method]
+    out_dir = runs_dir / sim.case / f"seed{sim.seed}" / method
+    start = time.perf_counter()
+    report = run_replay(
+        sim.recording, out_dir, ReplayOptions(method=m.replay_method, traits=m.traits)
+    )
+    elapsed = time.perf_counter() - start
+    return Replayed(
+        sim.case,
+        sim.seed,
+        method,
+        tuple(detections_from_trees(report.trees)),
+        int(report.summary.get("scans", 0)),
+        elapsed,
+    )
+
+
+def _expected_cost(case: Case) -> float:
+    """Rough driving length (m), to start the longest cases first."""
+    s = case.survey
+    lanes = {"straight": 1, "s": 3, "n": 5}.get(s.path, 1)
+    return lanes * s.goal * (1.0 + 0.5 * (s.wind.speed_mps > 0))
+
+
+def run_evaluation(
+    cases: Sequence[Case],
+    seeds: Sequence[int],
+    methods: Sequence[str],
+    out: Path,
+    jobs: int | None = None,
+    progress: bool = True,
+) -> Evaluation:
+    """Simulate (or reuse) and replay everything; the results in memory (no files but the
+    recordings and the replays' own outputs)."""
+    if not cases:
+        raise ConfigError("no case to evaluate")
+    jobs = max(1, jobs or os.cpu_count() or 1)
+    out = Path(out)
+    cases_dir, runs_dir = out / "cases", out / "runs"
+    cases_dir.mkdir(parents=True, exist_ok=True)
+    by_name = {c.name: c for c in cases}
+    order = sorted(((c, s) for c in cases for s in seeds), key=lambda p: -_expected_cost(p[0]))
+    simulated: list[Simulated] = []
+    replayed: list[Replayed] = []
+    start = time.perf_counter()
+    total = len(order) * (1 + len(methods))
+    with (
+        tqdm(total=total, desc="eval", unit="job", file=sys.stderr, disable=not progress) as bar,
+        ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool,
+    ):
+        # Own queue, at most `jobs` tasks in the pool: a recording's replays go before
+        # the next simulation, so results (and failures) come early.
+        sims_todo = list(order)
+        replays_todo: list[tuple[Simulated, str]] = []
+        pending: dict[Future, str] = {}
+        while sims_todo or replays_todo or pending:
+            while len(pending) < jobs and (replays_todo or sims_todo):
+                if replays_todo:
+                    sim, method = replays_todo.pop(0)
+                    pending[pool.submit(replay, sim, method, runs_dir)] = "replay"
+                else:
+                    case, seed = sims_todo.pop(0)
+                    pending[pool.submit(simulate, case, seed, cases_dir)] = "sim"
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                kind = pending.pop(future)
+                result = future.result()
+                bar.update(1)
+                if kind == "sim":
+                    simulated.append(result)
+                    how = "cached" if result.cached else f"{result.simulate_s:.0f} s"
+                    bar.set_postfix_str(f"simulated {result.case} seed {result.seed} ({how})")
+                    replays_todo += [(result, method) for method in methods]
+                else:
+                    replayed.append(result)
+                    bar.set_postfix_str(
+                        f"replayed {result.case} seed {result.seed} {result.method}"
+                    )
+    key = {c.name: i for i, c in enumerate(cases)}
+    simulated.sort(key=lambda s: (key[s.case], s.seed))
+    replayed.sort(key=lambda r: (key[r.case], r.seed, list(methods).index(r.method)))
+    return Evaluation(
+        tuple(by_name[c.name] for c in cases),
+        tuple(seeds),
+        tuple(methods),
+        tuple(simulated),
+        tuple(replayed),
+        time.perf_counter() - start,
+        jobs,
+    )
