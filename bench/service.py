@@ -9,10 +9,14 @@ service's start, so it is not time-aligned with the LiDAR: the load is right, th
 pictures are not). The service runs as a subprocess with a NOTIFY_SOCKET we bind; the
 player starts on READY=1 and plays for `--seconds` (default 60). Measured:
 
-- lost packets: the player's count sent minus what the service took in, from the
-  service's STATUS counters where it reports them; plus the kernel's drops on the
-  service's UDP socket (/proc/net/udp `drops`, exact and independent of the service);
+- lost packets: the player's count sent (data + telemetry) minus what the service took
+  from its sockets (STATUS `lidar_packets`: what the kernel dropped for a full socket
+  buffer is in this difference), plus what the service took but its LiDAR queue dropped
+  (`dropped_lidar`). The kernel's drops are shown beside, from /proc/net/udp `drops`
+  (exact and independent of the service) and from the service's own SO_RXQ_OVFL count;
+  a service that does not report `lidar_packets` is charged its drops plus the kernel's;
 - CPU: utime + stime of the service (/proc/<pid>/stat) over the window, % of one core;
+  and per thread (/proc/<pid>/task/*/stat; the receive threads are named rx-<sensor>);
 - RSS: VmRSS every second; the peak, and the median of the first and last thirds (flat
   means last/first near 1);
 - latency from a scan's last packet to its trees committed: `traits.sqlite` is polled
@@ -121,6 +125,19 @@ def cpu_seconds(pid: int) -> float:
     stat = Path(f"/proc/{pid}/stat").read_text()
     fields = stat[stat.rindex(")") + 2 :].split()
     return (int(fields[11]) + int(fields[12])) / CLK_TCK  # fields 14 and 15 of proc(5)
+
+
+def thread_cpu_seconds(pid: int) -> dict[str, float]:
+    """utime + stime per thread of a process, keyed by `tid name` (the name is the OS
+    thread name, /proc/<pid>/task/<tid>/comm: the service names its receive threads)."""
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            stat = (task / "stat").read_text()
+            name = stat[stat.index("(") + 1 : stat.rindex(")")]
+            fields = stat[stat.rindex(")") + 2 :].split()
+            out[f"{task.name} {name}"] = (int(fields[11]) + int(fields[12])) / CLK_TCK
+    return out
 
 
 def rss_mb(pid: int) -> float | None:
@@ -247,6 +264,7 @@ class LiveRun:
     log_tail: str = ""
     recorded_bytes: int = 0
     bench_cpu_s: float = 0.0  # this process (the player, the pollers) over the window
+    thread_cpu_s: dict[str, float] = field(default_factory=dict)  # per service thread
 
 
 def write_config(path: Path, values: dict[str, dict]) -> None:
@@ -318,6 +336,7 @@ def live_run(recording: Path, seconds: float, record: bool, work: Path) -> LiveR
                 )
         watcher.start()
         cpu_start = cpu_seconds(service.pid)
+        threads_start = thread_cpu_seconds(service.pid)
         started = time.monotonic()
         bench_cpu = time.process_time()
         player.start()
@@ -334,10 +353,12 @@ def live_run(recording: Path, seconds: float, record: bool, work: Path) -> LiveR
         result.seconds = window
         if service.poll() is None:
             result.cpu_s = cpu_seconds(service.pid) - cpu_start
+            threads_end = thread_cpu_seconds(service.pid)
+            result.thread_cpu_s = {k: v - threads_start.get(k, 0.0) for k, v in threads_end.items()}
             result.kernel_drops = udp_drops(data_port)
         player.stop()  # stop sending, ptys left open: the service sees silence, not unplugs
         result.player = player.counters
-        result.sent = result.player["lidar_sent"]
+        result.sent = result.player["lidar_sent"] + result.player["telemetry_sent"]
         result.bench_cpu_s = time.process_time() - bench_cpu
         time.sleep(1.5)  # the service drains its queue and commits the last scans
         notify.drain(0.2)
@@ -363,7 +384,7 @@ def live_run(recording: Path, seconds: float, record: bool, work: Path) -> LiveR
     half = half_rotation_ns(recording)
     result.latencies_ms = [(seen - (t + half)) / 1e6 for t, seen in watcher.seen.items()]
     last = status_counters(result.statuses[-1]) if result.statuses else {}
-    result.received = next((last[k] for k in RECEIVED_KEYS if k in last), None)
+    result.received = last.get(RECEIVED_KEY)
     result.service_drops = next((last[k] for k in DROPPED_KEYS if k in last), None)
     if KERNEL_DROPS_KEY in last:  # the service's own view of the kernel's drops
         result.kernel_drops = max(result.kernel_drops or 0, int(last[KERNEL_DROPS_KEY]))
@@ -372,10 +393,11 @@ def live_run(recording: Path, seconds: float, record: bool, work: Path) -> LiveR
     return result
 
 
-# STATUS keys: packets taken in (if the service reports them; it does not yet), items
-# dropped from full queues (all sensors), and the kernel's drops it saw (SO_RXQ_OVFL).
-RECEIVED_KEYS = ("lidar_packets", "packets")
-DROPPED_KEYS = ("dropped",)
+# STATUS keys: LiDAR datagrams taken from the sockets, LiDAR packets dropped from the
+# full queue (`dropped`: all queues, as services before lidar_packets reported it), and
+# the kernel's drops the service saw (SO_RXQ_OVFL).
+RECEIVED_KEY = "lidar_packets"
+DROPPED_KEYS = ("dropped_lidar", "dropped")
 KERNEL_DROPS_KEY = "kernel_drops"
 
 SERVICE_COMMAND = [sys.executable, "-m", "treetraits"]
@@ -411,9 +433,9 @@ def report(run: LiveRun, label: str, replay_cpu_per_s: float) -> dict[str, float
     peak = max(run.rss) if run.rss else float("nan")
     lost = None
     if run.received is not None:
-        lost = run.sent - run.received
+        lost = run.sent - run.received + (run.service_drops or 0)
     elif run.service_drops is not None:
-        lost = run.service_drops
+        lost = run.service_drops + (run.kernel_drops or 0)
     print(f"== {label}: {run.seconds:.1f} s under load, service exit code {run.exit_code}")
     print(
         f"  player: {p['lidar_sent']} packets ({p['lidar_sent'] / run.seconds:.0f} /s), "
@@ -433,6 +455,12 @@ def report(run: LiveRun, label: str, replay_cpu_per_s: float) -> dict[str, float
         f"(goal <= 50 %); replay of the same data: {100 * replay_cpu_per_s:.1f} % -> "
         f"live/replay {vs:.2f}"
     )
+    if run.thread_cpu_s:
+        busiest = sorted(run.thread_cpu_s.items(), key=lambda kv: -kv[1])[:6]
+        print(
+            "  CPU by thread (% of one core): "
+            + ", ".join(f"{k} {100 * v / run.seconds:.1f}" for k, v in busiest)
+        )
     if run.rss:
         print(
             f"  RSS: peak {peak:.0f} MB (goal <= 400), median first third "
@@ -460,7 +488,7 @@ def report(run: LiveRun, label: str, replay_cpu_per_s: float) -> dict[str, float
     if run.exit_code not in (0, None):
         print(f"  service log tail:\n{run.log_tail}")
     return {
-        "lost": float("nan") if lost is None else lost + (run.kernel_drops or 0),
+        "lost": float("nan") if lost is None else lost,
         "cpu_pct": cpu_pct,
         "rss_peak_mb": peak,
         "rss_growth": growth,

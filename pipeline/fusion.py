@@ -15,7 +15,7 @@ import numpy as np
 
 from drivers.calibration import Calibration
 from drivers.records import Frame, Scan
-from pipeline.ndvi import ndvi_image
+from pipeline.ndvi import PixelNdvi, ndvi_image
 from pipeline.projection import (
     DEFAULT_MAX_SKEW_NS,
     OcclusionRule,
@@ -70,11 +70,15 @@ def fuse_scan(
     frames: Sequence[Frame],
     calibration: Calibration,
     config: FusionConfig | None = None,
+    *,
+    keep_ndvi_frame: bool = True,
 ) -> FusedScan:
     """NDVI for every point of `scan` from the frame nearest its middle (by `t_capture`).
 
-    Raises CalibrationError only for a calibration without a camera; data problems come
-    back as a `reason`.
+    `keep_ndvi_frame=False`: NDVI is worked out only at the pixels the points land on and
+    `FusedScan.ndvi_frame` is None; the per-point values are the same (the mapper's way:
+    it needs no picture). Raises CalibrationError only for a calibration without a camera;
+    data problems come back as a `reason`.
     """
     config = FusionConfig() if config is None else config
     camera, extrinsic = calibration.camera, calibration.T_camera_lidar
@@ -109,7 +113,10 @@ def fuse_scan(
             frame,
             match.skew_ns,
         )
-    ndvi_frame = ndvi_image(image, camera.channels, calibration.reflectance)
+    if keep_ndvi_frame:
+        ndvi_frame = ndvi_image(image, camera.channels, calibration.reflectance)
+    else:
+        ndvi_frame = PixelNdvi(image, camera.channels, calibration.reflectance)
     projection = project_points(scan.points, camera, extrinsic)
     points = point_ndvi(
         scan.points, ndvi_frame, camera, extrinsic, config.occlusion, projection=projection
@@ -120,7 +127,7 @@ def fuse_scan(
         f"frame {frame.sequence} at {match.skew_ns / 1e6:+.1f} ms",
         frame,
         match.skew_ns,
-        ndvi_frame,
+        ndvi_frame if keep_ndvi_frame else None,
         projection,
     )
 

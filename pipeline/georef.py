@@ -10,6 +10,8 @@ without it they stay unreferenced (empty position) but are still reported.
 Matching: each georeferenced tree is compared with every field-map tree in x-y (UTM);
 pairs closer than the gate are taken greedily from the closest, each map tree and each
 detected tree at most once. A detected tree left without a pair keeps no `field_id`.
+The pairs within the gate are found through a k-d tree of the field map (`FieldMapIndex`,
+built once per run by the caller that georeferences after every scan).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Container, Iterable, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Protocol, TextIO
@@ -68,36 +70,83 @@ class MappedTree(Protocol):
     last_seen: int
 
 
+class FieldMapIndex:
+    """A field map's trees placed in the run's UTM grid once, with a k-d tree, so matching
+    a few hundred mapped trees after every scan costs a look-up each, not a projection of
+    the whole map and every pair's distance (georeference takes one or builds one)."""
+
+    def __init__(self, field_map: Sequence[FieldTree], grid: UtmGrid):
+        from scipy.spatial import cKDTree
+
+        self.trees = list(field_map)
+        self.grid = grid
+        self.xy = np.full((len(self.trees), 2), np.nan)
+        if self.trees:
+            lat = np.array([f.lat for f in self.trees], dtype=float)
+            lon = np.array([f.lon for f in self.trees], dtype=float)
+            self.xy = np.column_stack(grid.forward(lat, lon))
+        self._kdtree = cKDTree(self.xy) if self.trees else None
+
+    def __len__(self) -> int:
+        return len(self.trees)
+
+    def match(self, detected: np.ndarray, gate_m: float) -> list[int | None]:
+        """`match_nearest(detected, self.xy, gate_m)`, the same pairs: the k-d tree only
+        finds the candidates (with a hair of slack), the gate and the order are
+        match_nearest's own arithmetic."""
+        detected = np.asarray(detected, dtype=float).reshape(-1, 2)
+        placed = np.flatnonzero(np.isfinite(detected).all(axis=1))
+        if self._kdtree is None or not len(placed):
+            return [None] * len(detected)
+        reach = gate_m * (1 + 1e-9) + 1e-9
+        found = self._kdtree.query_ball_point(detected[placed], reach)
+        i = np.repeat(placed, [len(f) for f in found])
+        j = np.fromiter((k for f in found for k in f), dtype=np.intp, count=len(i))
+        return _greedy(detected, self.xy, i, j, gate_m, len(detected))
+
+
 def georeference(
     trees: Iterable[MappedTree],
     grid: UtmGrid | None,
-    field_map: Sequence[FieldTree] = (),
+    field_map: Sequence[FieldTree] | FieldMapIndex = (),
     utm_from_odom: UtmFromOdom | None = None,
     gate_m: float = DEFAULT_GATE_M,
+    only: Container[str] | None = None,
 ) -> list[Tree]:
     """`Tree` records, in the order given. `grid` is the run's UTM zone (the localizer's,
-    from the first fix); None when there never was a fix: nothing is referenced then."""
+    from the first fix); None when there never was a fix: nothing is referenced then.
+    `only`: the records of these tree ids alone (matching still weighs every tree, since
+    a tree's field id depends on its neighbours')."""
     trees = list(trees)
     xy = np.full((len(trees), 2), np.nan)
     for i, tree in enumerate(trees):
         position = _utm_xy(tree, grid, utm_from_odom)
         if position is not None:
             xy[i] = position
-    field_ids = [None] * len(trees)
-    if grid is not None and field_map:
-        map_xy = np.array([grid.forward(f.lat, f.lon) for f in field_map], dtype=float)
-        for i, j in enumerate(match_nearest(xy, map_xy, gate_m)):
-            field_ids[i] = None if j is None else field_map[j]
+    field_ids: list[FieldTree | None] = [None] * len(trees)
+    if grid is not None and len(field_map):
+        index = field_map if isinstance(field_map, FieldMapIndex) else None
+        if index is None or index.grid is not grid:
+            index = FieldMapIndex(field_map if index is None else index.trees, grid)
+        for i, j in enumerate(index.match(xy, gate_m)):
+            field_ids[i] = None if j is None else index.trees[j]
+    keep = [i for i, t in enumerate(trees) if only is None or str(t.tree_id) in only]
+    placed = [i for i in keep if np.isfinite(xy[i, 0])]
+    lat_lon = {}
+    if placed:
+        lat, lon = grid.inverse(xy[placed, 0], xy[placed, 1])
+        lat_lon = {i: (float(a), float(o)) for i, a, o in zip(placed, lat, lon, strict=True)}
     out = []
-    for tree, (e, n), match in zip(trees, xy, field_ids, strict=True):
-        placed = bool(np.isfinite(e))
-        lat, lon = grid.inverse(e, n) if placed else (None, None)
+    for i in keep:
+        tree, (e, n), match = trees[i], xy[i], field_ids[i]
+        placed_here = i in lat_lon
+        lat, lon = lat_lon.get(i, (None, None))
         out.append(
             Tree(
                 tree_id=str(tree.tree_id),
-                easting=float(e) if placed else None,
-                northing=float(n) if placed else None,
-                utm_zone=grid.name if placed else None,
+                easting=float(e) if placed_here else None,
+                northing=float(n) if placed_here else None,
+                utm_zone=grid.name if placed_here else None,
                 lat=lat,
                 lon=lon,
                 width_m=float(tree.width_m),
@@ -119,12 +168,19 @@ def match_nearest(detected: np.ndarray, mapped: np.ndarray, gate_m: float) -> li
     each side used at most once."""
     detected = np.asarray(detected, dtype=float).reshape(-1, 2)
     mapped = np.asarray(mapped, dtype=float).reshape(-1, 2)
-    result: list[int | None] = [None] * len(detected)
     if not len(detected) or not len(mapped):
-        return result
-    distance = np.hypot(*(detected[:, None, :] - mapped[None, :, :]).transpose(2, 0, 1))
-    i, j = np.nonzero(distance <= gate_m)  # NaN compares False: unplaced trees never match
-    order = np.lexsort((j, i, distance[i, j]))
+        return [None] * len(detected)
+    i, j = np.indices((len(detected), len(mapped))).reshape(2, -1)
+    return _greedy(detected, mapped, i, j, gate_m, len(detected))
+
+
+def _greedy(detected, mapped, i, j, gate_m: float, n: int) -> list[int | None]:
+    """The greedy pairing over candidate pairs (i, j), each pair's distance as hypot."""
+    result: list[int | None] = [None] * n
+    distance = np.hypot(detected[i, 0] - mapped[j, 0], detected[i, 1] - mapped[j, 1])
+    near = distance <= gate_m  # NaN compares False: unplaced trees never match
+    i, j, distance = i[near], j[near], distance[near]
+    order = np.lexsort((j, i, distance))
     used = set()
     for k in order:
         if result[i[k]] is None and j[k] not in used:

@@ -17,6 +17,7 @@ from drivers.calibration import Calibration
 from drivers.records import Frame, Pose, Scan
 from pipeline.config import MapperConfig
 from pipeline.detection import Cluster, GroundPlane, StageClock, detect
+from pipeline.localization.utm import wrap_angle
 from pipeline.tracking import Motion, Tracker, motion_transform
 from pipeline.traits import PaperTraits, RobustTraits, new_traits
 
@@ -99,6 +100,7 @@ class TreeMapper:
         self.frame: str | None = None  # fixed by the first scan
         self._trees: dict[int, _Tree] = {}
         self._last_t: int | None = None
+        self._last_pose: Pose | None = None  # for the yaw rate (robust traits)
         # The frame the robust traits accumulate in, from the map frame: the world itself
         # when poses are known; without poses the map is the moving LiDAR frame, so the
         # returns are held where the motion says the first scan's LiDAR frame is now.
@@ -141,11 +143,17 @@ class TreeMapper:
             + self._traits_from_map[:2, 3]
             for tr in self.tracker.tracks
         }
+        # World points for the outline: not while turning fast; and for the paper's traits
+        # (which use the outline for the centre only) not without a pose or a motion, where
+        # the cells could not follow the robot and the Kalman state is the better centre.
+        steady = self._steady(pose)
+        placeable = pose is not None or motion is not None
         for cluster, decision in zip(detection.clusters, step.decisions, strict=True):
             if decision.outcome == "duplicate":
                 continue
             tree = self._trees.setdefault(decision.tree_id, _Tree(new_traits(self.config.traits)))
-            self._observe(tree, cluster, traits_from_base, decision.tree_id, centres)
+            outline = steady and (placeable or isinstance(tree.traits, RobustTraits))
+            self._observe(tree, cluster, traits_from_base, decision.tree_id, centres, outline)
         for kept, absorbed in step.merged:
             self._absorb(kept, absorbed)
         clock.lap("traits")
@@ -266,9 +274,19 @@ class TreeMapper:
             & (xy[:, 1] <= crop.y_m[1] + margin)
         )
 
-    def _observe(self, tree: _Tree, cluster: Cluster, traits_from_base, tree_id, centres) -> None:
+    def _steady(self, pose: Pose | None) -> bool:
+        """Not turning faster than traits.max_yaw_rate since the previous scan's pose."""
+        last, self._last_pose = self._last_pose, pose
+        if pose is None or last is None or pose.t <= last.t:
+            return True
+        yaw_rate = abs(wrap_angle(pose.yaw - last.yaw)) / ((pose.t - last.t) / 1e9)
+        return yaw_rate <= self.config.traits.max_yaw_rate
+
+    def _observe(
+        self, tree: _Tree, cluster: Cluster, traits_from_base, tree_id, centres, outline: bool
+    ) -> None:
         world = ground_world = None
-        if isinstance(tree.traits, RobustTraits):
+        if outline:  # both methods keep the outline in the world frame (its centre)
             world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
             world = world[_nearest_is(world[:, :2], tree_id, centres)]
             ground_world = cluster.ground_z + traits_from_base[2, 3]
@@ -313,6 +331,6 @@ class _NdviOf:
         from pipeline.fusion import fuse_scan
 
         sub = replace(self.scan, points=self.points[index])
-        fused = fuse_scan(sub, [self.frame], self.calibration)
+        fused = fuse_scan(sub, [self.frame], self.calibration, keep_ndvi_frame=False)
         self.reason = fused.reason
         return np.asarray(fused.ndvi, dtype=float)

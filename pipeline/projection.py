@@ -17,6 +17,7 @@ import numpy as np
 
 from drivers.calibration import CameraModel
 from drivers.records import Scan
+from pipeline.ndvi import PixelNdvi
 
 # Points nearer than this to the lens plane are "behind": the model is meaningless there
 # and the VLP-16 reports nothing closer than ~0.4 m anyway.
@@ -172,14 +173,16 @@ class PointNdvi:
 
 def point_ndvi(
     points: np.ndarray,
-    ndvi_frame: np.ndarray,
+    ndvi_frame: np.ndarray | PixelNdvi,
     camera: CameraModel,
     T_camera_lidar: np.ndarray,
     rule: OcclusionRule | None = None,
     projection: Projection | None = None,
 ) -> PointNdvi:
     """Each point takes the NDVI of the pixel it lands on; NaN (with a status) when it is
-    behind the camera, outside the image, occluded, or its pixel has no NDVI."""
+    behind the camera, outside the image, occluded, or its pixel has no NDVI.
+    `ndvi_frame`: the H x W NDVI frame, or a `PixelNdvi` that works out only the pixels
+    read."""
     if ndvi_frame.shape[:2] != (camera.height, camera.width):
         raise ValueError(
             f"NDVI frame {ndvi_frame.shape[1]}x{ndvi_frame.shape[0]} is not the calibrated "

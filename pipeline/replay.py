@@ -187,6 +187,7 @@ def run_replay(
             world_frame=processor.world_frame,
             utm_zone=processor.localizer.grid.name if processor.localizer.grid else None,
             scans_without_pose=processor.stats.scans_without_pose,
+            scans_without_heading=processor.stats.scans_without_heading,
             fixes=processor.stats.fixes,
             frames=processor.stats.frames,
         )

@@ -9,6 +9,7 @@ Tables:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 from collections.abc import Iterable
@@ -115,6 +116,15 @@ class TraitStore:
             self._db.execute("ROLLBACK")
             raise
         self._db.execute("COMMIT")
+
+    def rollback(self) -> None:
+        """End a transaction left open by a failed write (SQLite may leave one open after
+        SQLITE_FULL or SQLITE_IOERR on COMMIT, and the next BEGIN would then fail for
+        good). Nothing open: nothing to do. A ROLLBACK that fails means SQLite already
+        rolled back by itself, so its error is not raised."""
+        if self._db.in_transaction:
+            with contextlib.suppress(sqlite3.Error):
+                self._db.execute("ROLLBACK")
 
     def trees(self) -> list[Tree]:
         rows = self._db.execute(

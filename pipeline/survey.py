@@ -4,9 +4,20 @@ the onboard service.
 Messages arrive as they were received (and as a recording stores them): a topic of the
 recording format, the bytes, `log_time` (host receive time) and `publish_time`. LiDAR
 packets become scans, NMEA becomes fixes, Jackal MCU and retrofit encoder board bytes
-become wheel samples, JPEGs wait in a short buffer. A scan is processed once the pose
-history covers it (GNSS epochs arrive a little after the moment they describe), with the
-camera frame nearest its middle.
+become wheel samples, JPEGs wait in a short buffer. A scan is processed, with the
+camera frame nearest its middle, as soon as what it gets can no longer change:
+
+- its pose: the localizer is causal (an input moves the poses from its arrival on, never
+  before), so the pose at the scan's middle is final once the pose history holds two
+  entries at or past the middle (`Localizer.settled_until`): with the wheels at 50 Hz,
+  about 40 ms after the middle, before the scan's last packet is in;
+- its frame: frames arrive in capture order, so once one captured at or after the middle
+  is in, no nearer one can come; a camera silent for FRAME_SILENCE_NS is not waited for.
+
+Whatever is missing, a scan waits no longer than POSE_WAIT_NS past its middle (by the
+newest message seen): then it goes with what there is (no pose: left out or mapped
+without, see `_mappable`). Every rule reads message times only, so a replay is
+deterministic, and the scan gets the pose and frame it would get if it waited longer.
 """
 
 from __future__ import annotations
@@ -31,8 +42,11 @@ from pipeline.localization import LocalizationConfig, Localizer
 from pipeline.localization.utm import wrap_angle
 from pipeline.projection import scan_mid_time
 
-# A scan waits until the pose history reaches this far past its middle.
+# The longest a scan waits past its middle (by the newest message) for a settled pose
+# and its frame: the wheels or the receiver gone, a camera running late.
 POSE_WAIT_NS = 300_000_000
+# A camera that sent nothing for this long is not waited for (absent, unplugged).
+FRAME_SILENCE_NS = 1_000_000_000
 # Before the first GNSS fix, scans wait this long for one; then the run maps in `odom`
 # for good (trees are georeferenced at the end if a fix ever comes).
 DATUM_WAIT_NS = 10_000_000_000  # 100 scans held at most (~85 MB of points)
@@ -51,6 +65,7 @@ class ScanOutcome:
 class SurveyStats:
     scans: int = 0
     scans_without_pose: int = 0
+    scans_without_heading: int = 0  # in utm before the heading is known: not mapped
     scans_skipped: int = 0  # could not be placed in the run's frame: not mapped (see _ready)
     frames: int = 0
     fixes: int = 0
@@ -75,6 +90,7 @@ class SurveyProcessor:
         self._frames: deque[Frame] = deque(maxlen=FRAME_BUFFER)
         self._pending: deque[Scan] = deque()
         self._latest = 0  # newest log_time seen
+        self._frame_seen = None  # log_time of the newest frame, for FRAME_SILENCE_NS
         # The mapper's world frame, chosen once: "utm" when a fix comes in time, else "odom".
         self.world_frame: str | None = None
         self._mapped_with_pose: bool | None = None  # set by the first scan mapped
@@ -88,6 +104,7 @@ class SurveyProcessor:
                 self._pending.append(scan)
         elif topic == rec.CAMERA_JPEG:
             self._frames.append(Frame(bytes(data), log_time, publish_time, self.stats.frames))
+            self._frame_seen = log_time
             self.stats.frames += 1
         elif topic == rec.GNSS_NMEA:
             for sentence in self._splitter.push(data, log_time):
@@ -109,7 +126,7 @@ class SurveyProcessor:
             pass  # the VLP-16's own GPS input: not used for the pose
         else:
             self.stats.unknown_topics += 1
-        return self._ready(self._latest - POSE_WAIT_NS)
+        return self._ready(end_of_input=False)
 
     def finish(self) -> list[ScanOutcome]:
         """End of input: the last partial scan and GNSS epoch, then every waiting scan."""
@@ -117,7 +134,7 @@ class SurveyProcessor:
             self._add_fix(fix)
         if (scan := self._batcher.flush()) is not None:
             self._pending.append(scan)
-        return self._ready(None)
+        return self._ready(end_of_input=True)
 
     def _add_fix(self, fix: Fix) -> None:
         self.stats.fixes += 1
@@ -133,7 +150,9 @@ class SurveyProcessor:
                 self.world_frame = "odom"
         return self.world_frame is not None
 
-    def _pose(self, t: int) -> Pose | None:
+    def pose_at(self, t: int) -> Pose | None:
+        """The pose in the run's world frame at `t`, as a scan with its middle at `t` gets
+        it (before the first fix, the odometry pose carried into utm at the datum)."""
         if self.world_frame == "odom":
             return self.localizer.pose_at(t, "odom")
         pose = self.localizer.pose_at(t)
@@ -159,16 +178,41 @@ class SurveyProcessor:
             self._mapped_with_pose = posed
         return posed == self._mapped_with_pose
 
-    def _ready(self, horizon: int | None) -> list[ScanOutcome]:
+    def _heading_known(self, pose: Pose) -> bool:
+        limit = self.localizer.config.known_yaw_sigma_rad
+        return float(pose.covariance[2, 2]) <= limit * limit
+
+    def _settled(self, middle: int) -> bool:
+        """The scan with this middle gets the pose and frame it would get later (or has
+        waited POSE_WAIT_NS for them)."""
+        if self._latest - middle >= POSE_WAIT_NS:
+            return True
+        settled = self.localizer.settled_until("odom")
+        if settled is None or settled < middle:
+            return False
+        if self.world_frame == "utm":
+            settled = self.localizer.settled_until("utm")
+            if settled is None or settled < middle:
+                return False
+        if self._frame_seen is None or self._latest - self._frame_seen > FRAME_SILENCE_NS:
+            return True  # no camera to wait for
+        return self._frames[-1].t_capture >= middle
+
+    def _ready(self, end_of_input: bool) -> list[ScanOutcome]:
         out = []
-        if not self._choose_frame(end_of_input=horizon is None):
+        if not self._choose_frame(end_of_input):
             return out
-        while self._pending and (horizon is None or scan_mid_time(self._pending[0]) <= horizon):
+        while self._pending and (end_of_input or self._settled(scan_mid_time(self._pending[0]))):
             scan = self._pending.popleft()
             middle = scan_mid_time(scan)
-            pose = self._pose(middle)
+            pose = self.pose_at(middle)
             if pose is None:
                 self.stats.scans_without_pose += 1
+            elif pose.frame == "utm" and not self._heading_known(pose):
+                # Mapped with a heading that is still a guess, a scan's trees would land
+                # anywhere on a circle round the robot (and stay in the accumulated clouds).
+                self.stats.scans_without_heading += 1
+                pose = None
             if not self._mappable(pose):
                 self.stats.scans_skipped += 1
                 continue

@@ -77,7 +77,12 @@ def slice_width(points: np.ndarray, slices: int = 10, floor: float = 0.0) -> flo
 
 
 class PaperTraits:
-    """Per tree: the top ring so far, and the largest height and width registered."""
+    """Per tree: the top ring so far, and the largest height and width registered.
+
+    The position is not one of the paper's traits: the paper reports the Kalman state, the
+    centroid of the returns, which lies on the side the robot sees (half a crown radius,
+    0.7 m on the twin, from the trunk when passed on one side). The centre reported here
+    is the accumulated outline's, as the robust traits measure it."""
 
     method = "paper"
 
@@ -86,11 +91,14 @@ class PaperTraits:
         self.top_ring: int | None = None
         self.height = float("nan")
         self.width = float("nan")
+        self._outline = RobustTraits(config)
 
     def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
-        """One cluster of this tree (points in `base`, ground height under it in `base`)."""
+        """One cluster of this tree (points in `base`, ground height under it in `base`;
+        and in the world frame for the outline, when the mapper has a steady pose)."""
         if len(points_base) == 0:
             return
+        self._outline.observe(points_base, ring, ground_z_base, points_world, ground_world)
         # Height: when the ring of the topmost return changes (and on the first sight),
         # register the top's height above the ground; keep the largest.
         top = int(np.argmax(points_base[:, 2]))
@@ -106,9 +114,10 @@ class PaperTraits:
         """Another track of the same tree merged into this one."""
         self.height = _max(self.height, other.height)
         self.width = _max(self.width, other.width)
+        self._outline.absorb(other._outline)
 
     def centre(self) -> np.ndarray | None:
-        return None  # the paper reports the Kalman state
+        return self._outline.centre()
 
 
 def _max(a: float, b: float) -> float:

@@ -131,7 +131,7 @@ def test_cache_key_follows_the_settings():
 SMALL = Case(
     "small",
     "straight, one row of a 5x5 grid",
-    SurveySettings(path="straight", rows=1, goal=9.0),
+    SurveySettings(path="straight", rows=1, goal=14.0),  # 9 m past the row
     (PaperRow("1", 1.0, 2.0, 3.0, 4.0),),
 )
 
@@ -159,9 +159,16 @@ def test_eval_end_to_end_on_one_small_case(tmp_path, monkeypatch, capsys):
     with open(next((tmp_path / "cases").glob("small-seed0-*.truth.csv"))) as f:
         truth = list(csv.DictReader(f))
     assert summary["trees_total"] == len(truth) == 2
+    # The twin's two trees, each found once, placed and measured (RTK, a straight drive
+    # past them: the easy case). Position and width: the issue's goals (0.3 m, 5 %).
+    # Height: the VLP-16's 2 deg between beams puts the top return below the true top;
+    # docs/evaluation.md has the measured errors (about 5 % here), so the bound is 8 %.
     assert summary["best_method"] in ("paper", "rph")
-    assert 0 <= summary["trees_found"] <= 2
-    assert summary["worst_row_mape_width"] is None or summary["worst_row_mape_width"] < 100
+    assert summary["trees_found"] == 2
+    assert summary["duplicates"] == 0
+    assert summary["position_rmse_m"] < 0.3
+    assert summary["worst_row_mape_width"] < 5.0
+    assert summary["worst_row_mape_height"] < 8.0
     assert [c["method"] for c in summary["cases"]] == ["paper", "rph"]
     assert summary["cases"][0]["rows"][0]["paper_mape_width_ours"] == 1.0
     assert (tmp_path / "table.md").read_text().startswith("# Table I on the twin")

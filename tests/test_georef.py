@@ -17,6 +17,7 @@ from drivers.records import Fix, Tree, WheelSample
 from pipeline.fieldmap import FieldTree, load_field_map
 from pipeline.georef import (
     CSV_COLUMNS,
+    FieldMapIndex,
     georeference,
     iso_utc,
     match_nearest,
@@ -243,6 +244,37 @@ def test_matching_with_a_gate_one_map_tree_to_one_detected_tree():
     assert match_nearest([[1.5, 0.0]], [[0.0, 0.0]], 1.49) == [None]
     assert georeference(trees[1:2], GRID, field_map, gate_m=3.5)[0].field_id == "M2"
     assert match_nearest([[np.nan, np.nan]], [[0.0, 0.0]], 1.5) == [None]
+
+
+def test_the_field_map_index_pairs_as_the_exhaustive_matching_does():
+    # Half-metre lattices make exact distance ties and pairs right on the gate; some
+    # detected trees are unplaced (NaN). The k-d tree must find exactly the pairs the
+    # all-pairs matching finds, tie-breaks included.
+    rng = np.random.default_rng(7)
+    matched = 0
+    for _ in range(50):
+        detected = rng.integers(0, 12, (int(rng.integers(1, 40)), 2)) * 0.5
+        detected[rng.random(len(detected)) < 0.1] = np.nan
+        mapped = rng.integers(0, 12, (int(rng.integers(1, 40)), 2)) * 0.5
+        index = FieldMapIndex(
+            [field_tree(f"F{j}", E0 + x, N0 + y) for j, (x, y) in enumerate(mapped)], GRID
+        )
+        # Detected trees on the map trees' own positions (a UTM round trip moves them by
+        # nanometres, which would make the ties ties no more).
+        placed = np.where(np.isnan(detected), np.nan, index.xy[0] + detected - mapped[0])
+        found = index.match(placed, 1.0)
+        assert found == match_nearest(placed, index.xy, 1.0)
+        matched += sum(j is not None for j in found)
+    assert matched > 200
+
+
+def test_records_of_some_trees_only_are_those_of_the_whole_map():
+    trees = [tracked(i, E0 + 0.6 * (i % 5), N0 + 0.4 * i) for i in range(12)]
+    field_map = [field_tree(f"F{j}", E0 + 0.5 * j, N0 + 0.4 * j) for j in range(12)]
+    whole = georeference(trees, GRID, field_map)
+    some = georeference(trees, GRID, FieldMapIndex(field_map, GRID), only={"2", "7", "11"})
+    assert some == [t for t in whole if t.tree_id in ("2", "7", "11")]
+    assert sum(t.field_id is not None for t in whole) >= 6  # neighbours compete for maps
 
 
 def test_an_outage_tree_in_odom_is_georeferenced_through_a_known_transform():

@@ -311,7 +311,6 @@ def test_utm_from_odom_georeferences_what_was_seen_before_the_datum():
     assert math.hypot(late[0] - truth[0], late[1] - truth[1]) > 1.0
 
 
-
 @pytest.mark.parametrize("seed", range(4))
 def test_a_robot_that_starts_by_turning_gets_its_heading_from_the_first_straight_leg(seed):
     """No true heading, no prior (east, sigma pi), the antenna 0.18 m behind the centre

@@ -19,6 +19,7 @@ from pipeline.ndvi import (
     TARGET_V2_MARKER_IN,
     TARGET_V2_PANELS_IN,
     Box,
+    PixelNdvi,
     find_target_v2,
     fit_band,
     fit_reflectance,
@@ -359,3 +360,20 @@ def test_ndvi_image_table_is_bit_identical_to_the_formulas():
     # Non-8-bit input takes the formulas directly.
     as_float = ndvi_image(image.astype(np.float32), CHANNELS, gains)
     np.testing.assert_array_equal(as_float, ndvi(bands["nir"], bands["red"]))
+
+
+def test_pixel_ndvi_reads_what_the_whole_frame_holds_at_those_pixels():
+    rng = np.random.default_rng(1)
+    image = rng.integers(0, 256, (72, 128, 3), dtype=np.uint8)
+    image[5, 7] = 0  # nir + red == 0: NaN in both
+    gains = {"red": (0.004, -0.02), "nir": (0.0036, -0.01)}
+    rows = np.r_[5, rng.integers(0, 72, 500)]
+    cols = np.r_[7, rng.integers(0, 128, 500)]
+    for picture in (image, image.astype(np.float32)):
+        whole = ndvi_image(picture, CHANNELS, gains)
+        sampled = PixelNdvi(picture, CHANNELS, gains)
+        assert sampled.shape == whole.shape
+        np.testing.assert_array_equal(sampled[rows, cols], whole[rows, cols])
+        assert np.isnan(sampled[rows[:1], cols[:1]]).all()
+    with pytest.raises(CalibrationError, match="nir"):
+        PixelNdvi(image, {"red": 2}, gains)

@@ -81,3 +81,66 @@ def test_kill_9_mid_scan_loses_only_that_scan(tmp_path):
     # Trees and observations agree: no half-written scan.
     assert db.execute("SELECT COUNT(*) FROM observations").fetchone()[0] == 50 * scans
     assert db.execute("SELECT MAX(observations) FROM trees").fetchone()[0] == scans
+
+
+def test_rollback_ends_a_transaction_a_failed_commit_left_open(tmp_path):
+    with TraitStore(tmp_path / "traits.sqlite") as store:
+        store.rollback()  # nothing open: nothing to do
+        store.commit_scan([Observation(1, "T1", 1.0, 2.0, 0.0, "utm", 2.7, 2.6, 0.7, 9)], [tree(1)])
+        # What SQLite can leave after a COMMIT that failed (SQLITE_BUSY, some SQLITE_FULL
+        # paths): the scan's writes in a transaction still open. No public call makes that
+        # state on demand, so it is made here on the connection.
+        store._db.execute("BEGIN")
+        store._db.execute(
+            "INSERT INTO trees (tree_id, observations, first_seen, last_seen) "
+            "VALUES ('T9', 1, 0, 0)"
+        )
+        try:
+            store.commit_scan([], [tree(2)])
+        except sqlite3.OperationalError as exc:
+            assert "within a transaction" in str(exc)
+        else:
+            raise AssertionError("a BEGIN inside an open transaction should have failed")
+        store.rollback()
+        store.commit_scan([], [tree(2)])  # the store takes scans again
+        assert [t.tree_id for t in store.trees()] == ["T1", "T2"]  # the half scan is gone
+
+
+def test_a_commit_failing_on_a_full_disk_leaves_the_store_usable(tmp_path):
+    # A child process with a file size limit (SIGXFSZ ignored, so writes past it fail with
+    # EFBIG, as they would with ENOSPC on a full disk).
+    script = textwrap.dedent(
+        """
+        import os, resource, signal, sqlite3, sys
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        from pipeline.store import Observation, TraitStore
+        from tests.test_store import tree
+        path = sys.argv[1]
+        store = TraitStore(path)
+        store.commit_scan([Observation(1, "T1", 1.0, 2.0, 0.0, "utm", 2.7, 2.6, 0.7, 9)], [tree(1)])
+        limit = os.path.getsize(path + "-wal") + 8192
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
+        row = (2.0, 0.0, "utm", 2.7, 2.6, 0.7, 9)
+        many = [Observation(2, f"T{i}", 1.0, *row) for i in range(5000)]
+        try:
+            store.commit_scan(many, [tree(2)])
+            print("committed")
+        except sqlite3.Error as exc:
+            print("failed", exc)
+        store.rollback()
+        resource.setrlimit(resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY,) * 2)
+        store.commit_scan(many[:1], [tree(3)])
+        print("observations", store.observation_count())
+        store.close()
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(tmp_path / "traits.sqlite")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("failed") and lines[1] == "observations 2"  # no half scan

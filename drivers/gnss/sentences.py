@@ -280,7 +280,7 @@ def _text(text: str) -> str:
     return text
 
 
-def _time_of_day(text: str) -> int:
+def time_of_day(text: str) -> int:
     """hhmmss(.s...) -> ns since midnight (exact: no float)."""
     match = _TIME.fullmatch(text)
     if match is None:
@@ -346,7 +346,7 @@ def _group(convert: Callable[[str], Any]) -> Callable[[Sequence[str]], Any]:
     return read
 
 
-TIME = FieldKind("time", 1, _one(_time_of_day))
+TIME = FieldKind("time", 1, _one(time_of_day))
 DATE = FieldKind("date", 1, _one(_date))
 LAT = FieldKind("lat", 2, _angle(90, "N", "S"))
 LON = FieldKind("lon", 2, _angle(180, "E", "W"))

@@ -44,11 +44,12 @@ class UtmGrid:
         return f"{self.zone}{'N' if self.north else 'S'}"
 
     def forward(self, lat: float, lon: float) -> tuple[float, float]:
-        """(easting, northing) in metres."""
+        """(easting, northing) in metres. Arrays too (one PROJ call for all, the same
+        values as point by point)."""
         return self._to_utm.transform(lon, lat)
 
     def inverse(self, easting: float, northing: float) -> tuple[float, float]:
-        """(lat, lon) in degrees."""
+        """(lat, lon) in degrees. Arrays too, as `forward`."""
         lon, lat = self._to_wgs84.transform(easting, northing)
         return lat, lon
 

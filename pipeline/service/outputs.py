@@ -9,14 +9,18 @@ with the store's transaction rolled back, so a full disk never leaves a half-wri
 
 from __future__ import annotations
 
-import contextlib
 import sqlite3
 from collections.abc import Sequence
 from pathlib import Path
 
 from drivers.records import Tree
 from pipeline.fieldmap import FieldTree
-from pipeline.georef import georeference, write_trees_csv, write_trees_geojson
+from pipeline.georef import (
+    FieldMapIndex,
+    georeference,
+    write_trees_csv,
+    write_trees_geojson,
+)
 from pipeline.store import Observation, TraitStore
 from pipeline.survey import ScanOutcome, SurveyProcessor
 from treetraits.errors import TreetraitsError
@@ -53,6 +57,7 @@ class RunWriter:
         self.scans = 0  # scans committed
         self.exports = 0
         self.store = TraitStore(self.store_path)
+        self._field_index: FieldMapIndex | None = None
         self._closed = False
         if facts:
             self.set_facts(facts)
@@ -61,14 +66,22 @@ class RunWriter:
         """The mapper's trees seen often enough to report (a stray one-scan cluster is not)."""
         return [t for t in self.processor.mapper.trees() if t.observations >= self.min_observations]
 
-    def georeferenced(self) -> list[Tree]:
+    def georeferenced(self, only: set[str] | None = None) -> list[Tree]:
+        """The reported trees as output records (`only`: just these ids' records)."""
         localizer = self.processor.localizer
+        field_map = self.field_map
+        if field_map and localizer.grid is not None:
+            # The field map in UTM once per run, not after every scan.
+            if self._field_index is None or self._field_index.grid is not localizer.grid:
+                self._field_index = FieldMapIndex(self.field_map, localizer.grid)
+            field_map = self._field_index
         return georeference(
             self.reported(),
             localizer.grid,
-            self.field_map,
+            field_map,
             utm_from_odom=localizer.utm_from_odom,
             gate_m=self.match_gate_m,
+            only=only,
         )
 
     def commit(self, outcome: ScanOutcome) -> None:
@@ -91,7 +104,7 @@ class RunWriter:
             if c.tree_id is not None
         ]
         touched = {str(i) for i in (*result.created, *result.updated)}
-        trees = [t for t in self.georeferenced() if t.tree_id in touched] if touched else []
+        trees = self.georeferenced(only=touched) if touched else []
         try:
             self.store.commit_scan(observations, trees)
         except sqlite3.Error as exc:
@@ -139,11 +152,8 @@ class RunWriter:
 
     def _roll_back(self) -> None:
         # SQLite may leave the transaction open after SQLITE_FULL or SQLITE_IOERR on COMMIT;
-        # the next BEGIN would then fail forever. TraitStore has no rollback of its own.
-        db = self.store._db
-        if db.in_transaction:
-            with contextlib.suppress(sqlite3.Error):  # SQLite rolled back by itself
-                db.execute("ROLLBACK")
+        # the next BEGIN would then fail forever.
+        self.store.rollback()
 
 
 def _sqlite_text(exc: sqlite3.Error) -> str:

@@ -14,6 +14,8 @@ alike.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import logging
 import threading
 import time
@@ -38,6 +40,7 @@ log = logging.getLogger("treetraits.service")
 READ_TIMEOUT_S = 0.25  # longest a receive blocks before it looks at stop()
 RETRY_FIRST_S = 0.5  # first wait before trying a device that would not open again
 RETRY_MAX_S = 5.0
+PR_SET_NAME = 15  # prctl(2)
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,7 +56,7 @@ class BoundedQueue:
 
     Lock-free by construction: only the receive thread appends and only the loop pops, and
     CPython's deque append/popleft are atomic, so the length seen by the producer can only
-    shrink before its append: the bound holds. `wake` is set on every put.
+    shrink before its append: the bound holds. `wake` is set after every put.
     """
 
     def __init__(self, name: str, capacity: int, wake: threading.Event):
@@ -77,7 +80,10 @@ class BoundedQueue:
         self.accepted += 1
         if size + 1 > self.high_water:
             self.high_water = size + 1
-        self._wake.set()
+        # set() takes a lock: skip it when already set. Safe because the item is in
+        # before the look, and the loop clears the event before it looks at the queues.
+        if not self._wake.is_set():
+            self._wake.set()
         return True
 
     def head_time(self) -> int | None:
@@ -92,6 +98,14 @@ class BoundedQueue:
 
     def __len__(self) -> int:
         return len(self._items)
+
+
+def name_os_thread(name: str) -> None:
+    """Give the calling thread its name in the OS too (`top -H`, /proc/<pid>/task/*/comm),
+    so the CPU of each receive thread can be told apart. Linux only; best effort."""
+    with contextlib.suppress(Exception):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
 
 
 def lidar_publish_time(payload: bytes, t_host: int) -> int:
@@ -161,6 +175,7 @@ class Worker:
     # --- the thread --------------------------------------------------------------------
 
     def _main(self) -> None:
+        name_os_thread(f"rx-{self.name}")
         try:
             while not self._stop.is_set():
                 source = self.source

@@ -25,7 +25,7 @@ def register(commands: argparse._SubParsersAction) -> None:
             "in OUT/cases/ and reused by a rerun with the same settings and software."
         ),
     )
-    ev.add_argument("--out", required=True, type=Path, help="output directory")
+    ev.add_argument("--out", type=Path, help="output directory (required but with --list)")
     ev.add_argument("--quick", action="store_true", help="one seed per case (= --seeds 1)")
     ev.add_argument("--seeds", type=int, help="seeds per case, 0..N-1 (default 5)")
     ev.add_argument("--json", action="store_true", help="print the summary as one JSON object")
@@ -54,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
         for case in CASES:
             print(f"{case.name:22} {'' if case.default else '(not default) '}{case.title}")
         return 0
+    if args.out is None:
+        raise ConfigError("--out DIR is required: where the tables, maps and cases go")
     if args.quick and args.seeds not in (None, 1):
         raise ConfigError(f"--quick runs one seed; it cannot go with --seeds {args.seeds}")
     seeds = 1 if args.quick else (5 if args.seeds is None else args.seeds)

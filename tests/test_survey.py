@@ -1,0 +1,96 @@
+"""pipeline/survey.py: when a scan goes through. A scan is processed as soon as its pose
+and its camera frame can no longer change (not a fixed wait), and it gets exactly the
+pose and frame it would get by waiting: checked against the localizer's final history and
+the recording's frames, on a simulated survey."""
+
+from __future__ import annotations
+
+import statistics
+
+import numpy as np
+import pytest
+
+from drivers import recording as rec
+from drivers.calibration import load_calibration
+from pipeline.projection import scan_mid_time
+from pipeline.replay import ReplayOptions, make_mapper
+from pipeline.survey import POSE_WAIT_NS, SurveyProcessor
+from sim.gnss import GnssSettings
+from sim.run import SurveySettings, simulate_survey
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    out = tmp_path_factory.mktemp("survey") / "survey.mcap"
+    # 8 m at 0.5 m/s: about 17 s, well inside the localizer's 30 s history. A dual-antenna
+    # receiver (HDT), so the heading is known without the wheels too.
+    settings = SurveySettings(goal=8.0, rows=2, seed=2, gnss=GnssSettings(dual_antenna=True))
+    return simulate_survey(out, settings)
+
+
+def messages(survey, without=()):
+    with rec.read_recording(survey.recording) as recording:
+        calibration = load_calibration(recording.metadata.calibration)
+        kept = [
+            (m.topic, bytes(m.data), m.log_time, m.publish_time)
+            for m in recording
+            if m.topic not in without
+        ]
+    return kept, calibration
+
+
+def run(survey, without=()):
+    """Every outcome with the log_time of the message that let it through."""
+    kept, calibration = messages(survey, without)
+    processor = SurveyProcessor(make_mapper(ReplayOptions(), calibration), calibration)
+    out = []
+    for topic, data, log_time, publish_time in kept:
+        out.extend((o, log_time) for o in processor.feed(topic, data, log_time, publish_time))
+    return processor, out, kept
+
+
+def waits_ms(out) -> list[float]:
+    """From each scan's last packet to the message that let it through."""
+    return [(released - o.scan.t_host) / 1e6 for o, released in out]
+
+
+def test_a_scan_goes_through_once_settled_with_the_pose_and_frame_waiting_would_give(survey):
+    processor, out, kept = run(survey)
+    assert len(out) > 120
+    waits = waits_ms(out)
+    # Wheels at 50 Hz and a 10 fps camera settle a scan's middle about when its last
+    # packet is in; a fixed wait held every scan 250 ms past its last packet.
+    assert statistics.median(waits) < 80
+    assert max(waits) < POSE_WAIT_NS / 1e6
+    frame_times = np.array([pt for topic, _, _, pt in kept if topic == rec.CAMERA_JPEG])
+    for outcome, _ in out:
+        middle = scan_mid_time(outcome.scan)
+        final = processor.pose_at(middle)  # with everything in
+        assert outcome.pose is not None and final is not None
+        assert (outcome.pose.x, outcome.pose.y, outcome.pose.yaw) == (final.x, final.y, final.yaw)
+        assert np.array_equal(outcome.pose.covariance, final.covariance)
+        nearest = frame_times[np.argmin(np.abs(frame_times - middle))]
+        assert outcome.frame.t_capture == nearest
+
+
+def test_without_a_camera_scans_do_not_wait_for_frames(survey):
+    _, out, _ = run(survey, without=(rec.CAMERA_JPEG,))
+    assert len(out) > 120 and all(o.frame is None for o, _ in out)
+    assert statistics.median(waits_ms(out)) < 80
+
+
+def test_without_wheels_a_scan_waits_for_the_fixes_at_most_the_bound(survey):
+    # Poses then come from the 10 Hz GNSS epochs alone, each known one epoch late.
+    processor, out, _ = run(survey, without=(rec.WHEELS_JACKAL, rec.WHEELS_BRIDGE))
+    assert len(out) > 120
+    waits = waits_ms(out)
+    # The bound is on the scan's middle; the last packet is half a rotation (50 ms) later.
+    assert max(waits) <= POSE_WAIT_NS / 1e6
+    for outcome, _ in out:
+        final = processor.pose_at(scan_mid_time(outcome.scan))
+        if outcome.pose is not None:
+            assert (outcome.pose.x, outcome.pose.y, outcome.pose.yaw) == (
+                final.x,
+                final.y,
+                final.yaw,
+            )
