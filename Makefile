@@ -34,7 +34,7 @@ setup: system-packages $(STAMP)
 
 system-packages:
 	@if [ -z "$(PYTHON)" ]; then \
-		echo "error: treetraits needs Python >= 3.10 (see README: 'Python on the robot')" >&2; \
+		echo "error: treetraits needs Python >= 3.10 (see README: 'Putting it on a robot')" >&2; \
 		exit 1; \
 	fi
 	@if ! command -v dpkg-query >/dev/null 2>&1; then \
