@@ -100,7 +100,7 @@ class TreeMapper:
         self.frame: str | None = None  # fixed by the first scan
         self._trees: dict[int, _Tree] = {}
         self._last_t: int | None = None
-        self._last_pose: Pose | None = None  # for the yaw rate (robust traits)
+        self._last_pose: Pose | None = None  # for the yaw rate (the outline skips fast turns)
         # The frame the robust traits accumulate in, from the map frame: the world itself
         # when poses are known; without poses the map is the moving LiDAR frame, so the
         # returns are held where the motion says the first scan's LiDAR frame is now.
