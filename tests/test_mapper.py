@@ -353,3 +353,20 @@ def test_an_empty_scan_and_a_ground_only_scan_change_nothing():
 
 def test_a_mapper_without_scans_has_no_trees():
     assert TreeMapper().trees() == []
+
+
+def test_scans_taken_while_turning_fast_add_nothing_to_the_outline():
+    """The same scans and positions, but poses whose heading swings by 0.1 rad from one
+    scan to the next (1 rad/s, the paper's turn rate; above traits.max_yaw_rate): the
+    robust outline takes none of them (no width), while with the true, steady headings
+    every tree gets one. Tracking is not touched: the trees are found either way."""
+    data = grid_drive()
+    config = MapperConfig(traits=TraitsConfig(method="robust"))
+    steady, turning = TreeMapper(config, data.calibration), TreeMapper(config, data.calibration)
+    for k, (scan, pose) in enumerate(zip(data.scans[:40], data.poses[:40], strict=True)):
+        steady.process(scan, None, pose)
+        swung = dataclasses.replace(pose, yaw=pose.yaw + (0.05 if k % 2 else -0.05))
+        turning.process(scan, None, swung)
+    assert len(steady.trees()) >= 2 and len(turning.trees()) == len(steady.trees())
+    assert all(math.isfinite(t.width_m) for t in steady.trees())
+    assert all(math.isnan(t.width_m) for t in turning.trees())
