@@ -328,3 +328,16 @@ def test_a_robot_that_starts_by_turning_gets_its_heading_from_the_first_straight
     position, heading = errors(localizer, poses, after_s=7.5)
     assert heading.max() < 3.0
     assert position.max() < 0.10
+
+
+def test_without_wheel_data_course_over_ground_still_gives_the_heading():
+    """The wheel link is down (no WheelSample at all): course over ground is the only
+    heading there is, so it is used unchecked (trusted less). Driving straight, the
+    heading is found (within 3 deg after 5 s); with no heading a run in utm maps nothing."""
+    rng = np.random.default_rng(4)
+    poses = drive([(30, 0.0)])
+    fixes = [e for e in sensors(poses, rng) if isinstance(e, Fix)]
+    localizer, _ = run(fixes)
+    assert localizer.heading_known
+    _, heading = errors(localizer, poses, after_s=5.0)
+    assert len(heading) > 100 and heading.max() < 3.0

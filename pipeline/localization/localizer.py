@@ -50,6 +50,10 @@ class LocalizerStats:
     courses_used: int = 0
 
 
+# Wheel samples older than this (before a fix) mean there is no odometry right now.
+WHEELS_GONE_NS = 1_000_000_000
+
+
 @dataclass
 class _Motion:
     """Recent speed and yaw rate from the wheels, to judge course over ground."""
@@ -222,15 +226,19 @@ class Localizer:
                 c.heading_sigma_rad,
                 "heading",
             )
-        moving = (
-            fix.course_deg is not None
-            and fix.speed_mps is not None
-            and fix.speed_mps >= c.cog_min_speed_mps
-            and self._motion.speed >= c.cog_min_speed_mps
+        if fix.course_deg is None or fix.speed_mps is None or fix.speed_mps < c.cog_min_speed_mps:
+            return None
+        sigma = max(c.cog_velocity_sigma_mps / fix.speed_mps, math.radians(0.5))
+        wheels = self._last_wheels
+        if wheels is None or fix.t_host - wheels.t_host > WHEELS_GONE_NS:
+            # No odometry to tell forward from reverse or straight from turning: course over
+            # ground alone, trusted less (a wrong one is reset by the ones that follow).
+            # Without it a robot without wheel data would never learn its heading.
+            return true_heading_to_grid_yaw(fix.course_deg, convergence), 3 * sigma, "course"
+        if (
+            self._motion.speed >= c.cog_min_speed_mps
             and abs(self._motion.yaw_rate) <= c.cog_max_yaw_rate
-        )
-        if moving:
-            sigma = max(c.cog_velocity_sigma_mps / fix.speed_mps, math.radians(0.5))
+        ):
             return true_heading_to_grid_yaw(fix.course_deg, convergence), sigma, "course"
         return None
 
