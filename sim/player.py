@@ -77,6 +77,16 @@ class StreamCounters:
         self._late.append(ms)
         self.late_max_ms = max(self.late_max_ms, ms)
 
+    def deliver(self, pty: _Pty, data: bytes, due_ns: int) -> None:
+        """Write one message that fell due at `due_ns` (monotonic) and count the outcome."""
+        late_ms = (time.monotonic_ns() - due_ns) / 1e6
+        if pty.write(data):
+            self.sent += 1
+            self.bytes += len(data)
+            self.late(late_ms)
+        else:
+            self.dropped += 1
+
     @property
     def late_median_ms(self) -> float:
         return statistics.median(self._late) if self._late else 0.0
@@ -212,13 +222,7 @@ def _raw_stream(
         if not pty.listened():
             counters.unheard += 1
             continue
-        late_ms = (time.monotonic_ns() - due) / 1e6
-        if pty.write(data):
-            counters.sent += 1
-            counters.bytes += len(data)
-            counters.late(late_ms)
-        else:
-            counters.dropped += 1
+        counters.deliver(pty, data, due)
 
 
 @dataclass
@@ -322,13 +326,7 @@ def _jackal_mcu(
         while nxt is not None and nxt[0] <= now_ns:
             due, frame_bytes = nxt
             if configured and pty.listened():
-                late_ms = (time.monotonic_ns() - due) / 1e6
-                if pty.write(frame_bytes):
-                    counters.sent += 1
-                    counters.bytes += len(frame_bytes)
-                    counters.late(late_ms)
-                else:
-                    counters.dropped += 1
+                counters.deliver(pty, frame_bytes, due)
             else:
                 counters.unheard += 1
             nxt = next(upcoming, None)

@@ -345,28 +345,32 @@ class Service:
             recorder.close()
 
     def _commit(self, outcome) -> None:
-        try:
-            self.writer.commit(outcome)
-        except OutputError as exc:
+        if not self._attempt(
+            "store",
+            lambda: self.writer.commit(outcome),
+            "; the scan is rolled back, later scans try again",
+        ):
             self.counters.store_failures += 1
-            if "store" not in self.counters.problems:
-                log.error("%s; the scan is rolled back, later scans try again", exc)
-            self.counters.problems["store"] = str(exc)
             return
         self.counters.scans += 1
-        if self.counters.problems.pop("store", None) is not None:
-            log.warning("%s: committing again", self.writer.store_path)
 
     def _export(self) -> None:
-        try:
-            self.writer.export()
-        except OutputError as exc:
+        if not self._attempt("export", self.writer.export):
             self.counters.export_failures += 1
-            if "export" not in self.counters.problems:
-                log.error("%s", exc)
-            self.counters.problems["export"] = str(exc)
-            return
-        self.counters.problems.pop("export", None)
+
+    def _attempt(self, kind: str, action, consequence: str = "") -> bool:
+        """Run an output step; an OutputError is logged once while it lasts and shown in
+        the status (`problems[kind]`) until the step works again."""
+        try:
+            action()
+        except OutputError as exc:
+            if kind not in self.counters.problems:
+                log.error("%s%s", exc, consequence)
+            self.counters.problems[kind] = str(exc)
+            return False
+        if self.counters.problems.pop(kind, None) is not None:
+            log.warning("%s: %s works again", self.writer.out_dir, kind)
+        return True
 
     # --- status ----------------------------------------------------------------------------
 

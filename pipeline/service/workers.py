@@ -14,6 +14,7 @@ alike.
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import ctypes
 import logging
@@ -121,7 +122,7 @@ def lidar_publish_time(payload: bytes, t_host: int) -> int:
     return int(resolve_hour(np.array([toh_us]), np.array([t_host]))[0])
 
 
-class Worker:
+class Worker(abc.ABC):
     """A receive thread: `open()` (in the caller's thread), `start()`, `stop()`, `join()`.
     Subclasses implement `_open_source`, `_receive` (one bounded wait) and `_close_source`."""
 
@@ -241,11 +242,13 @@ class Worker:
 
     # --- per sensor --------------------------------------------------------------------
 
+    @abc.abstractmethod
     def _open_source(self):
-        raise NotImplementedError
+        """The sensor's source (it reopens itself with backoff where it can)."""
 
+    @abc.abstractmethod
     def _receive(self, source) -> Message | None:
-        raise NotImplementedError
+        """The next message, or None after a short timeout."""
 
     def _close_source(self, source) -> None:
         source.close()
