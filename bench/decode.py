@@ -20,9 +20,9 @@ from pathlib import Path
 
 import velodyne_decoder as vd
 
-from drivers.velodyne import models as m
-from drivers.velodyne.batcher import ScanBatcher
-from drivers.velodyne.sources import open_source
+from treetraits.drivers.velodyne import models as m
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.drivers.velodyne.sources import open_source
 
 FIXTURES = Path(__file__).resolve().parent.parent / "tests" / "fixtures" / "vlp16"
 DEFAULT_CAPTURES = [

@@ -25,13 +25,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.calibration import load_calibration
-from drivers.records import Frame, Scan
-from drivers.velodyne.reader import LidarReader
-from drivers.velodyne.sources import open_source
-from pipeline.fusion import fuse_scan
-from pipeline.ndvi import ndvi_image
-from pipeline.projection import point_ndvi, project_points, scan_mid_time
+from treetraits.drivers.calibration import load_calibration
+from treetraits.drivers.records import Frame, Scan
+from treetraits.drivers.velodyne.reader import LidarReader
+from treetraits.drivers.velodyne.sources import open_source
+from treetraits.pipeline.fusion import fuse_scan
+from treetraits.pipeline.ndvi import ndvi_image
+from treetraits.pipeline.projection import point_ndvi, project_points, scan_mid_time
 
 FIXTURES = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
 CAPTURE = FIXTURES / "vlp16" / "nebula_vlp16_dual_10hz.pcap"

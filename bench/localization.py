@@ -27,11 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # for tests.*: 
 import numpy as np
 from pynmeagps import NMEAReader
 
-from drivers.gnss.sentences import decode
-from drivers.gnss.stream import SentenceSplitter
-from drivers.records import WheelSample
-from pipeline.localization import LocalizationConfig, Localizer
 from tests.test_localization import PATH, WHEELS, drive, sensors
+from treetraits.drivers.gnss.sentences import decode
+from treetraits.drivers.gnss.stream import SentenceSplitter
+from treetraits.drivers.records import WheelSample
+from treetraits.pipeline.localization import LocalizationConfig, Localizer
 
 NMEA_DIR = Path(__file__).resolve().parent.parent / "tests" / "fixtures" / "nmea"
 NMEA_REAL_RATE = 100.0  # sentences per second from a 10 Hz receiver

@@ -37,14 +37,20 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # `tests` for --sweep, when run as a script
 
-from drivers.calibration import load_calibration  # noqa: E402
-from drivers.records import Frame, Pose, Scan  # noqa: E402
-from drivers.velodyne.batcher import ScanBatcher  # noqa: E402
-from pipeline.config import ClusterConfig, MapperConfig, TrackingConfig, TraitsConfig  # noqa: E402
-from pipeline.mapper import TreeMapper  # noqa: E402
-from sim.camera import Survey3Emulator  # noqa: E402
-from sim.lidar import Scene, Vlp16Emulator  # noqa: E402
-from sim.orchard import Ground, grid_orchard, ground_mesh, tree_mesh  # noqa: E402
+from treetraits.drivers.calibration import load_calibration  # noqa: E402
+from treetraits.drivers.records import Frame, Pose, Scan  # noqa: E402
+from treetraits.drivers.velodyne.batcher import ScanBatcher  # noqa: E402
+from treetraits.pipeline.config import (  # noqa: E402
+    ClusterConfig,
+    DetectionConfig,
+    MapperConfig,
+    TrackingConfig,
+    TraitsConfig,
+)
+from treetraits.pipeline.mapper import TreeMapper  # noqa: E402
+from treetraits.sim.camera import Survey3Emulator  # noqa: E402
+from treetraits.sim.lidar import Scene, Vlp16Emulator  # noqa: E402
+from treetraits.sim.orchard import Ground, grid_orchard, ground_mesh, tree_mesh  # noqa: E402
 
 CALIBRATION = ROOT / "tests" / "fixtures" / "citrusfarm_calib" / "citrusfarm_calibration_v1.json"
 LATENCY_NS = 200_000
@@ -117,7 +123,7 @@ def timed(function, *args, **kwargs):
 
 
 def bench(rounds: int, layout: str) -> None:
-    from pipeline.rph import RphMapper, rph_config
+    from treetraits.pipeline.rph import RphMapper, rph_config
 
     calibration = load_calibration(CALIBRATION)
     warmup = 5
@@ -193,20 +199,29 @@ def bench(rounds: int, layout: str) -> None:
 def clustering_alone(pairs, calibration) -> tuple[float, float]:
     """Median time of the Euclidean clustering step alone on each scan's voxels, with
     the two implementations (they must agree)."""
-    from pipeline.detection import crop_mask, euclidean_clusters, fit_ground, to_base, voxel_grid
+    from treetraits.pipeline.detection import (
+        crop_mask,
+        euclidean_clusters,
+        fit_ground,
+        to_base,
+        voxel_grid,
+    )
 
     config = MapperConfig()
     T = calibration.T_base_lidar
     times: dict[str, list[float]] = {"kdtree": [], "dbscan": []}
     for scan, _ in pairs:
         xyz = to_base(scan.points, T)
-        xyz = xyz[crop_mask(xyz, config.crop, T[:2, 3])]
-        xyz = xyz[fit_ground(xyz, config.ground).height(xyz) >= config.ground.clearance_m]
-        _, voxels = voxel_grid(xyz, config.cluster.voxel_m)
+        xyz = xyz[crop_mask(xyz, config.detection.crop, T[:2, 3])]
+        xyz = xyz[
+            fit_ground(xyz, config.detection.ground).height(xyz)
+            >= config.detection.ground.clearance_m
+        ]
+        _, voxels = voxel_grid(xyz, config.detection.cluster.voxel_m)
         labels = {}
         for method in times:
             ms, labels[method] = timed(
-                euclidean_clusters, voxels, config.cluster.tolerance_m, method
+                euclidean_clusters, voxels, config.detection.cluster.tolerance_m, method
             )
             times[method].append(ms)
         assert np.array_equal(labels["kdtree"], labels["dbscan"])
@@ -261,7 +276,9 @@ def sweep() -> None:
     print("voxel tol  ms   created updated found dups stray  W-MAPE H-MAPE")
     for voxel in (0.1, 0.15, 0.2, 0.25):
         for tolerance in (0.3, 0.4, 0.5, 0.6):
-            config = MapperConfig(cluster=ClusterConfig(voxel_m=voxel, tolerance_m=tolerance))
+            config = MapperConfig(
+                DetectionConfig(cluster=ClusterConfig(voxel_m=voxel, tolerance_m=tolerance))
+            )
             mapper, outcomes, ms = run(config)
             s = score(mapper)
             print(
@@ -271,7 +288,7 @@ def sweep() -> None:
             )
     print("# clustering method (same clusters?) at the defaults")
     for method in ("kdtree", "dbscan"):
-        config = MapperConfig(cluster=ClusterConfig(method=method))
+        config = MapperConfig(DetectionConfig(cluster=ClusterConfig(method=method)))
         mapper, outcomes, ms = run(config)
         print(f"{method:7s} {ms:5.1f} ms/scan  {outcomes}  {score(mapper)['w_mape']:.2f}")
     print("# innovation scale (x1 = fractions, x100 = percent) and the merge")
@@ -336,7 +353,7 @@ def main() -> None:
         sweep()
         return
     try:
-        import pipeline.rph  # noqa: F401
+        import treetraits.pipeline.rph  # noqa: F401
     except ImportError as exc:
         print(f"RPH baseline not available (pipeline.rph: {exc}); no comparison possible")
         raise SystemExit(1) from exc

@@ -25,7 +25,7 @@ player starts on READY=1 and plays for `--seconds` (default 60). Measured:
   rotation, the median measured on the recording). Only scans that saw a tree are in the
   store; the poll adds 0-POLL_S (half on average).
 
-The peer: `pipeline.replay.run_replay` of the same recording in this process after the
+The peer: `treetraits.service.replay.run_replay` of the same recording in this process after the
 live run (nothing else running), its CPU per recorded second. `cpu_vs_replay` = the
 service's CPU per live second / the replay's per recorded second: what being live
 costs on top of the pipeline (1.0 = nothing).
@@ -58,11 +58,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from drivers import recording as rec  # noqa: E402
-from drivers.velodyne.batcher import ScanBatcher  # noqa: E402
-from pipeline.replay import ReplayOptions, run_replay  # noqa: E402
-from sim.player import RecordingPlayer, write_camera_video  # noqa: E402
-from sim.run import SurveySettings, simulate_survey  # noqa: E402
+from treetraits.drivers import recording as rec  # noqa: E402
+from treetraits.drivers.velodyne.batcher import ScanBatcher  # noqa: E402
+from treetraits.service.replay import ReplayOptions, run_replay  # noqa: E402
+from treetraits.sim.player import RecordingPlayer, write_camera_video  # noqa: E402
+from treetraits.sim.run import SurveySettings, simulate_survey  # noqa: E402
 
 CACHE = ROOT / "out" / "bench"
 POLL_S = 0.02

@@ -1,4 +1,4 @@
-"""Calibration v1 (ARCHITECTURE.md): camera model, reflectance, extrinsics, wheels.
+"""Calibration v1 (docs/architecture.md): camera model, reflectance, extrinsics, wheels.
 
 One JSON object, loaded and checked once; a malformed file is refused with a message
 naming the field. Missing optional parts fall back to the defaults below (documented in

@@ -1,7 +1,7 @@
 """Recording format v1: every sensor's raw bytes in one MCAP file, written and read back.
 
 The onboard recorder writes what each sensor sent, exactly as received, so a field day can
-be replayed through the same drivers later. The format (frozen, see ARCHITECTURE.md):
+be replayed through the same drivers later. The format (frozen, see docs/architecture.md):
 
 - one MCAP file, zstd-compressed chunks;
 - one channel per sensor stream, no schema (schema id 0), the `message_encoding` naming the

@@ -1,4 +1,4 @@
-"""Records that cross module boundaries (ARCHITECTURE.md, "Data that crosses module boundaries").
+"""Records that cross module boundaries (docs/architecture.md, Data that crosses module boundaries).
 
 Defined once here and used everywhere. Bulk points are NumPy structured arrays with
 `POINT_DTYPE`; everything else is a frozen dataclass.
@@ -154,7 +154,7 @@ class Frame:
 
 @dataclass(frozen=True, slots=True)
 class Tree:
-    """One mapped tree, as written to the outputs (trees.csv columns, ARCHITECTURE.md).
+    """One mapped tree, as written to the outputs (trees.csv columns, docs/architecture.md).
 
     Position in the UTM zone of the run (`utm_zone` like `11N`) and in WGS84; None while
     the tree is only known in `odom` (seen before the first GNSS fix or in an outage).

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from drivers.recording import FIELD_MAP_MEDIA_TYPE, FIELD_MAP_NAME, RecordingWriter
+from treetraits.drivers.recording import FIELD_MAP_MEDIA_TYPE, FIELD_MAP_NAME, RecordingWriter
 from treetraits.errors import TreetraitsError
 
 

@@ -107,6 +107,18 @@ class ClusterConfig:
 
 
 @dataclass(frozen=True)
+class DetectionConfig:
+    """Per scan: the spatial filter, the ground, the clusters (`detection.detect`)."""
+
+    crop: CropConfig = field(default_factory=CropConfig)
+    ground: GroundConfig = field(default_factory=GroundConfig)
+    cluster: ClusterConfig = field(default_factory=ClusterConfig)
+
+    def __post_init__(self) -> None:
+        _validate_detection(self)
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     """One Kalman filter per tree over m_k = [centroid x y z, num_points, mean NDVI]."""
 
@@ -142,6 +154,9 @@ class TrackingConfig:
     # merge folded two real trees into one. 0 turns it off (the paper exactly).
     max_association_m: float = 1.5
 
+    def __post_init__(self) -> None:
+        _validate_tracking(self)
+
 
 @dataclass(frozen=True)
 class TraitsConfig:
@@ -169,47 +184,53 @@ class TraitsConfig:
     # smeared the crowns to 4.5-6.4 m against a true 2.8 m.
     max_yaw_rate: float = 0.2
 
+    def __post_init__(self) -> None:
+        _validate_traits(self)
+
 
 @dataclass(frozen=True)
 class MapperConfig:
-    crop: CropConfig = field(default_factory=CropConfig)
-    ground: GroundConfig = field(default_factory=GroundConfig)
-    cluster: ClusterConfig = field(default_factory=ClusterConfig)
+    detection: DetectionConfig = field(default_factory=DetectionConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     traits: TraitsConfig = field(default_factory=TraitsConfig)
 
-    def __post_init__(self) -> None:
-        validate(self)
+
+def _need(ok: bool, what: str) -> None:
+    if not ok:
+        raise ConfigError(what)
 
 
-def validate(config: MapperConfig) -> None:
-    """Raise ConfigError naming the first bad value."""
-
-    def need(ok: bool, what: str) -> None:
-        if not ok:
-            raise ConfigError(f"pipeline config: {what}")
-
-    c = config.crop
+def _validate_detection(d: DetectionConfig) -> None:
+    c, g, k = d.crop, d.ground, d.cluster
     for name, (lo, hi) in (("x_m", c.x_m), ("y_m", c.y_m), ("z_m", c.z_m)):
-        need(lo < hi, f"crop.{name} must be (low, high) with low < high, got {(lo, hi)}")
-    g = config.ground
-    need(g.distance_m > 0 and g.iterations > 0, "ground.distance_m and iterations must be > 0")
-    need(g.max_points >= 3, "ground.max_points must be >= 3")
-    need(0 < g.max_tilt_deg < 90, "ground.max_tilt_deg must be in (0, 90)")
-    need(g.method in GROUND_METHODS, f"ground.method must be one of {GROUND_METHODS}")
-    k = config.cluster
-    need(k.voxel_m > 0 and k.tolerance_m > 0, "cluster.voxel_m and tolerance_m must be > 0")
-    need(1 <= k.min_points <= k.max_points, "cluster: need 1 <= min_points <= max_points")
-    need(k.method in CLUSTERING_METHODS, f"cluster.method must be one of {CLUSTERING_METHODS}")
-    t = config.tracking
-    need(t.q >= 0 and t.r > 0 and t.p0 > 0, "tracking: need q >= 0, r > 0, p0 > 0")
-    need(0 <= t.th_p <= 1 and 0 <= t.th_h <= 1, "tracking.th_p and th_h must be in [0, 1]")
-    need(len(t.floor) == 5 and min(t.floor) > 0, "tracking.floor: five positive numbers")
-    need(t.percent > 0 and t.prob_scale > 0, "tracking.percent and prob_scale must be > 0")
-    r = config.traits
-    need(r.method in TRAIT_METHODS, f"traits.method must be one of {TRAIT_METHODS}")
-    need(r.slices >= 1 and r.directions >= 2, "traits: slices >= 1, directions >= 2")
-    need(r.min_hits >= 1, "traits.min_hits must be >= 1")
-    need(r.voxel_m > 0 and r.max_points > 0, "traits.voxel_m and max_points must be > 0")
-    need(r.max_yaw_rate > 0, "traits.max_yaw_rate must be > 0")
-    need(math.isfinite(t.view_margin_m), "tracking.view_margin_m must be finite")
+        _need(lo < hi, f"detection.crop.{name} must be [low, high] with low < high, got {(lo, hi)}")
+    _need(c.min_range_m >= 0, "detection.crop.min_range_m must be >= 0")
+    _need(g.distance_m > 0 and g.iterations > 0, "detection.ground: distance_m, iterations > 0")
+    _need(g.max_points >= 3, "detection.ground.max_points must be >= 3")
+    _need(0 < g.max_tilt_deg < 90, "detection.ground.max_tilt_deg must be in (0, 90)")
+    _need(g.method in GROUND_METHODS, f"detection.ground.method must be one of {GROUND_METHODS}")
+    _need(g.clearance_m > 0, "detection.ground.clearance_m must be > 0")
+    _need(k.voxel_m > 0 and k.tolerance_m > 0, "detection.cluster: voxel_m, tolerance_m > 0")
+    _need(1 <= k.min_points <= k.max_points, "detection.cluster: 1 <= min_points <= max_points")
+    _need(
+        k.method in CLUSTERING_METHODS,
+        f"detection.cluster.method must be one of {CLUSTERING_METHODS}",
+    )
+
+
+def _validate_tracking(t: TrackingConfig) -> None:
+    _need(t.q >= 0 and t.r > 0 and t.p0 > 0, "tracking: need q >= 0, r > 0, p0 > 0")
+    _need(0 <= t.th_p <= 1 and 0 <= t.th_h <= 1, "tracking.th_p and th_h must be in [0, 1]")
+    _need(len(t.floor) == 5 and min(t.floor) > 0, "tracking.floor: five positive numbers")
+    _need(t.percent > 0 and t.prob_scale > 0, "tracking.percent and prob_scale must be > 0")
+    _need(math.isfinite(t.view_margin_m), "tracking.view_margin_m must be finite")
+    _need(t.merge_distance_m >= 0, "tracking.merge_distance_m must be >= 0 (0: off)")
+    _need(t.max_association_m >= 0, "tracking.max_association_m must be >= 0 (0: off)")
+
+
+def _validate_traits(r: TraitsConfig) -> None:
+    _need(r.method in TRAIT_METHODS, f"traits.method must be one of {TRAIT_METHODS}")
+    _need(r.slices >= 1 and r.directions >= 2, "traits: slices >= 1, directions >= 2")
+    _need(r.min_hits >= 1, "traits.min_hits must be >= 1")
+    _need(r.voxel_m > 0 and r.max_points > 0, "traits.voxel_m and max_points must be > 0")
+    _need(r.max_yaw_rate > 0, "traits.max_yaw_rate must be > 0")

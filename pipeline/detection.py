@@ -15,7 +15,7 @@ from functools import cached_property
 
 import numpy as np
 
-from pipeline.config import ClusterConfig, CropConfig, GroundConfig, MapperConfig
+from treetraits.pipeline.config import ClusterConfig, CropConfig, DetectionConfig, GroundConfig
 
 # Voxel keys: 21 bits per axis (+-1M cells: +-100 km at 0.1 m), packed into one int64.
 _KEY_BITS = 21
@@ -262,7 +262,7 @@ def detect(
     points: np.ndarray,
     ndvi: NdviSource,
     T_base_lidar: np.ndarray,
-    config: MapperConfig,
+    config: DetectionConfig,
     stage_ms: dict[str, float] | None = None,
 ) -> Detection:
     """Clusters of one scan. `points` POINT_DTYPE in `lidar`. `ndvi`: None without a

@@ -1,4 +1,4 @@
-"""The field map: where the orchard's trees stand (ARCHITECTURE.md, "Field map input").
+"""The field map: where the orchard's trees stand (docs/architecture.md, "Field map input").
 
 Two formats, told apart by the file name (`.geojson`/`.json`, `.csv`) or else by the
 first character:

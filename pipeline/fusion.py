@@ -13,10 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.calibration import Calibration
-from drivers.records import Frame, Scan
-from pipeline.ndvi import PixelNdvi, ndvi_image
-from pipeline.projection import (
+from treetraits.drivers.calibration import Calibration
+from treetraits.drivers.records import Frame, Scan
+from treetraits.errors import CalibrationError, ParseError
+from treetraits.pipeline.ndvi import PixelNdvi, ndvi_image
+from treetraits.pipeline.projection import (
     DEFAULT_MAX_SKEW_NS,
     OcclusionRule,
     PointNdvi,
@@ -27,7 +28,6 @@ from pipeline.projection import (
     project_points,
     scan_mid_time,
 )
-from treetraits.errors import CalibrationError, ParseError
 
 # Frame-level reasons, each counted by the caller.
 FRAME_REASONS = ("ok", "no_frame", "skew", "corrupt_jpeg", "size_mismatch")

@@ -1,5 +1,5 @@
 """Mapped trees to the outputs: positions in UTM and WGS84, the matching field-map tree,
-and `trees.csv` / `trees.geojson` written atomically (ARCHITECTURE.md, "Outputs").
+and `trees.csv` / `trees.geojson` written atomically (docs/architecture.md, "Outputs").
 
 A mapper's trees live in a world frame: `utm` (after the first fix) or `odom` (mapped
 before the first fix, or kept there through a GNSS outage). `odom` trees are moved to
@@ -29,9 +29,9 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
-from drivers.records import Tree
-from pipeline.fieldmap import FieldTree
-from pipeline.localization.utm import UtmGrid
+from treetraits.drivers.records import Tree
+from treetraits.pipeline.fieldmap import FieldTree
+from treetraits.pipeline.localization.utm import UtmGrid
 
 DEFAULT_GATE_M = 1.5
 

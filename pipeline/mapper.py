@@ -13,13 +13,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from drivers.calibration import Calibration
-from drivers.records import Frame, Pose, Scan
-from pipeline.config import MapperConfig
-from pipeline.detection import Cluster, GroundPlane, StageClock, detect
-from pipeline.localization.utm import wrap_angle
-from pipeline.tracking import Motion, Tracker, motion_transform
-from pipeline.traits import PaperTraits, RobustTraits, new_traits
+from treetraits.drivers.calibration import Calibration
+from treetraits.drivers.records import Frame, Pose, Scan
+from treetraits.pipeline.config import MapperConfig
+from treetraits.pipeline.detection import Cluster, GroundPlane, StageClock, detect
+from treetraits.pipeline.localization.utm import wrap_angle
+from treetraits.pipeline.projection import scan_mid_time
+from treetraits.pipeline.tracking import Motion, Tracker, motion_transform
+from treetraits.pipeline.traits import PaperTraits, RobustTraits, new_traits
 
 LIDAR_FRAME = "lidar"
 
@@ -118,13 +119,13 @@ class TreeMapper:
         a world frame at the scan's middle; all scans of a run must use the same frame
         (or none). `motion`: used only without poses, for the paper's B v_x prediction."""
         stage_ms: dict[str, float] | None = {} if self.timing else None
-        t = scan.t_host - (scan.t_end - scan.t_start) // 2
+        t = scan_mid_time(scan)
         map_from_base = self._map_from_base(pose, motion, t)
         # Dual returns: each echo once (a single-return scan has no duplicates to drop).
         points = scan.distinct if scan.points["duplicate"].any() else scan.points
 
         ndvi_reason, ndvi_of = self._ndvi(scan, points, frame)
-        detection = detect(points, ndvi_of, self.T_base_lidar, self.config, stage_ms)
+        detection = detect(points, ndvi_of, self.T_base_lidar, self.config.detection, stage_ms)
         if ndvi_of is not None:
             ndvi_reason = ndvi_of.reason
 
@@ -265,7 +266,7 @@ class TreeMapper:
         """Trees whose centre lies in the crop box grown by the view margin."""
         if not self.tracker.tracks:
             return np.zeros(0, dtype=bool)
-        crop, margin = self.config.crop, self.config.tracking.view_margin_m
+        crop, margin = self.config.detection.crop, self.config.tracking.view_margin_m
         xy = (self.tracker.positions() @ base_from_map[:3, :3].T + base_from_map[:3, 3])[:, :2]
         return (
             (xy[:, 0] >= crop.x_m[0] - margin)
@@ -328,7 +329,7 @@ class _NdviOf:
         self.reason = "ok"
 
     def __call__(self, index: np.ndarray) -> np.ndarray:
-        from pipeline.fusion import fuse_scan
+        from treetraits.pipeline.fusion import fuse_scan
 
         sub = replace(self.scan, points=self.points[index])
         fused = fuse_scan(sub, [self.frame], self.calibration, keep_ndvi_frame=False)

@@ -417,7 +417,7 @@ def nir_is_brightest_on_foliage(
 
     Leaves reflect NIR far more than red, so on foliage the NIR channel must be the
     brightest on most pixels (`min_fraction`) and NDVI (raw / 255 as reflectance, no
-    calibration needed) must exceed `min_ndvi` (camera notes §2). `foliage` is a mask of
+    calibration needed) must exceed `min_ndvi` (docs/camera.md). `foliage` is a mask of
     the pixels to judge; without one, the pixels are picked without trusting any channel
     order: well exposed (brightest channel in 20..250) and in the top quarter of channel
     spread (max - min), which in an RGN image of a tree is the foliage. The result is

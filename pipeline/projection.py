@@ -1,7 +1,7 @@
 """LiDAR points into the camera image: the camera model of calibration v1, a z-buffer for
 occlusion, per-point NDVI, and the choice of the camera frame for a scan.
 
-Frames as in ARCHITECTURE.md: `p_camera = T_camera_lidar @ p_lidar`, camera = OpenCV
+Frames as in docs/architecture.md: `p_camera = T_camera_lidar @ p_lidar`, camera = OpenCV
 optical (z forward, x right, y down); the lens is OpenCV's radial-tangential model
 (k1 k2 p1 p2 k3), so `project_points` gives what `cv2.projectPoints` gives. Pure functions
 over arrays and records; the rules are written out in docs/ndvi_projection.md.
@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.calibration import CameraModel
-from drivers.records import Scan
-from pipeline.ndvi import PixelNdvi
+from treetraits.drivers.calibration import CameraModel
+from treetraits.drivers.records import Scan
+from treetraits.pipeline.ndvi import PixelNdvi
 
 # Points nearer than this to the lens plane are "behind": the model is meaningless there
 # and the VLP-16 reports nothing closer than ~0.4 m anyway.

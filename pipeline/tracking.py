@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.config import TrackingConfig
+from treetraits.pipeline.config import TrackingConfig
 
 DIM = 5
 NDVI = 4  # index of the NDVI component

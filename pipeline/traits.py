@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from pipeline.config import TraitsConfig
+from treetraits.pipeline.config import TraitsConfig
 
 # Bearings for the per-slice upper bound: a set's true diameter D is at most its largest
 # extent over K bearings divided by cos(pi / 2K).

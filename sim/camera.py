@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.calibration import Calibration
-from sim.lidar import Scene
+from treetraits.drivers.calibration import Calibration
+from treetraits.sim.lidar import Scene
 
 # (red, green, nir) reflectance by surface label: 0 ground, -1 sky, >0 trees.
 SOIL = (0.20, 0.18, 0.27)  # NDVI 0.15

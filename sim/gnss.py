@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyproj
 
-from drivers.gnss.sentences import checksum
+from treetraits.drivers.gnss.sentences import checksum
 
 QUALITY_SIGMA_M = {4: 0.02, 5: 0.25, 2: 0.6, 1: 2.0}  # RTK fixed, float, DGPS, autonomous
 

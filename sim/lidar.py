@@ -18,8 +18,8 @@ from typing import Protocol
 import numpy as np
 import open3d as o3d
 
-from drivers.velodyne import models as m
-from drivers.velodyne.encode import encode_packets
+from treetraits.drivers.velodyne import models as m
+from treetraits.drivers.velodyne.encode import encode_packets
 
 # Pose of base_link in the world at times t (ns array): returns x, y, z, yaw arrays.
 Trajectory = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]

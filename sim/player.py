@@ -46,9 +46,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from drivers import recording as rec
-from firmware_bridge.jackal import rosserial as rs
+from treetraits.drivers import recording as rec
 from treetraits.errors import ParseError, SourceError
+from treetraits.firmware_bridge.jackal import rosserial as rs
 
 log = logging.getLogger(__name__)
 

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import recording as rec
-from drivers.calibration import Calibration, load_calibration
-from sim.camera import CameraSettings, Survey3Emulator
-from sim.gnss import GnssEmulator, GnssSettings, UtmZone
-from sim.lidar import LidarSettings, Scene, Vlp16Emulator
-from sim.orchard import (
+from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import Calibration, load_calibration
+from treetraits.sim.camera import CameraSettings, Survey3Emulator
+from treetraits.sim.gnss import GnssEmulator, GnssSettings, UtmZone
+from treetraits.sim.lidar import LidarSettings, Scene, Vlp16Emulator
+from treetraits.sim.orchard import (
     Ground,
     TreeTruth,
     WindSettings,
@@ -33,8 +33,8 @@ from sim.orchard import (
     tree_mesh,
     tree_sways,
 )
-from sim.paths import DriveSettings, drive, trajectory_function, waypoints
-from sim.wheels import JackalMcuEmulator, WheelSettings
+from treetraits.sim.paths import DriveSettings, drive, trajectory_function, waypoints
+from treetraits.sim.wheels import JackalMcuEmulator, WheelSettings
 
 DEFAULT_CALIBRATION = Path(__file__).parent / "data" / "citrusfarm_calibration_v1.json"
 START_UTC = dt.datetime(2026, 5, 12, 17, 0, 0, tzinfo=dt.UTC)

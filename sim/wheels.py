@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.calibration import WheelGeometry
-from firmware_bridge.jackal import messages as m
-from firmware_bridge.jackal import rosserial as rs
+from treetraits.drivers.calibration import WheelGeometry
+from treetraits.firmware_bridge.jackal import messages as m
+from treetraits.firmware_bridge.jackal import rosserial as rs
 
 FEEDBACK_TOPIC_ID = 137  # the MCU's choice; the host learns it from TopicInfo
 

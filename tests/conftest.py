@@ -8,9 +8,9 @@ from pathlib import Path
 import cv2
 import pytest
 
-from drivers.records import Scan
-from drivers.velodyne.reader import LidarReader
-from drivers.velodyne.sources import open_source
+from treetraits.drivers.records import Scan
+from treetraits.drivers.velodyne.reader import LidarReader
+from treetraits.drivers.velodyne.sources import open_source
 
 FIXTURES = Path(__file__).parent / "fixtures"
 VLP16_DIR = FIXTURES / "vlp16"
@@ -24,7 +24,7 @@ VLP16_CAPTURES = [
 ]
 
 
-# trees.csv columns as ARCHITECTURE.md fixes them (restated here, not imported from the code).
+# trees.csv columns as docs/architecture.md fixes them (restated here, not imported from the code).
 CONTRACT_CSV_COLUMNS = [
     "tree_id",
     "field_id",

@@ -9,8 +9,8 @@ import re
 import numpy as np
 import pytest
 
-from drivers.calibration import DEFAULT_T_BASE_LIDAR, load_calibration
 from tests.conftest import FIXTURES
+from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR, load_calibration
 from treetraits.errors import CalibrationError
 
 CITRUSFARM = FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json"

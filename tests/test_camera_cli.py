@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers import recording
-from drivers.camera import open_camera_source, record_frame
-from drivers.records import Frame
 from treetraits.cli import main
+from treetraits.drivers import recording
+from treetraits.drivers.camera import open_camera_source, record_frame
+from treetraits.drivers.records import Frame
 
 MS = 1_000_000
 T0 = 1_780_000_000_000_000_000

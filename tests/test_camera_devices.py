@@ -11,8 +11,8 @@ from types import SimpleNamespace
 import pytest
 import usb.core
 
-from drivers.camera import v4l2
-from drivers.camera.devices import (
+from treetraits.drivers.camera import v4l2
+from treetraits.drivers.camera.devices import (
     find_usb_ports,
     list_video_devices,
     resolve_device,

@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.camera import CameraSettings, UvcCamera, open_camera_source
-from drivers.camera.frames import ClockSample, capture_time_ns
-from drivers.camera.v4l2 import fourcc_code
+from treetraits.drivers.camera import CameraSettings, UvcCamera, open_camera_source
+from treetraits.drivers.camera.frames import ClockSample, capture_time_ns
+from treetraits.drivers.camera.v4l2 import fourcc_code
 from treetraits.errors import ConfigError, SourceError
 
 MJPG = fourcc_code("MJPG")

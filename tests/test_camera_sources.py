@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers import recording
-from drivers.camera import (
+from treetraits.drivers import recording
+from treetraits.drivers.camera import (
     FolderWriter,
     FrameRing,
     ImageFolderSource,
@@ -22,9 +22,9 @@ from drivers.camera import (
     open_camera_source,
     record_frame,
 )
-from drivers.camera.frames import CameraStats, interval_summary, nearest_index
-from drivers.camera.replay import parse_timestamps
-from drivers.records import Frame
+from treetraits.drivers.camera.frames import CameraStats, interval_summary, nearest_index
+from treetraits.drivers.camera.replay import parse_timestamps
+from treetraits.drivers.records import Frame
 from treetraits.errors import ParseError, SourceError
 
 MS = 1_000_000

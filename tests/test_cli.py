@@ -13,8 +13,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from drivers.velodyne.sources import open_source
 from tests.conftest import VLP16_DIR, decode_file, reference
+from treetraits.drivers.velodyne.sources import open_source
 
 CLI = [sys.executable, "-m", "treetraits"]
 

@@ -9,11 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from drivers.calibration import DEFAULT_T_BASE_LIDAR
-from drivers.records import POINT_DTYPE
-from drivers.velodyne.batcher import ScanBatcher
-from pipeline.config import ClusterConfig, CropConfig, GroundConfig, MapperConfig
-from pipeline.detection import (
+from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
+from treetraits.drivers.records import POINT_DTYPE
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.pipeline.config import ClusterConfig, CropConfig, DetectionConfig, GroundConfig
+from treetraits.pipeline.detection import (
     FLAT,
     attach,
     crop_mask,
@@ -25,8 +25,8 @@ from pipeline.detection import (
     to_base,
     voxel_grid,
 )
-from sim.lidar import Scene, Vlp16Emulator
-from sim.orchard import Ground, TreeSpec, ground_mesh, measure_truth, tree_mesh
+from treetraits.sim.lidar import Scene, Vlp16Emulator
+from treetraits.sim.orchard import Ground, TreeSpec, ground_mesh, measure_truth, tree_mesh
 
 LIDAR_HEIGHT = DEFAULT_T_BASE_LIDAR[2, 3]
 
@@ -140,7 +140,7 @@ def test_a_skirt_joins_its_tree_but_never_starts_or_bridges_a_cluster():
     ndvi = np.concatenate(
         [np.full(len(ground), 0.15), np.full(1600, 0.75), np.full(100 + 200 + 60, 0.7)]
     )
-    config = MapperConfig(cluster=ClusterConfig(voxel_m=0.1))
+    config = DetectionConfig(cluster=ClusterConfig(voxel_m=0.1))
     with_camera = detect(structured(xyz), ndvi, DEFAULT_T_BASE_LIDAR, config)
     without = detect(structured(xyz), None, DEFAULT_T_BASE_LIDAR, config)
     assert len(with_camera.clusters) == len(without.clusters) == 2  # no bridge, no patch
@@ -202,10 +202,10 @@ def test_hull_area_and_volume_of_a_box():
 
 
 def test_empty_and_ground_only_scans_give_no_clusters():
-    empty = detect(np.zeros(0, POINT_DTYPE), None, DEFAULT_T_BASE_LIDAR, MapperConfig())
+    empty = detect(np.zeros(0, POINT_DTYPE), None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
     assert empty.clusters == [] and empty.counts["points"] == 0
     rng = np.random.default_rng(4)
-    flat = detect(structured(ground_points(rng)), None, DEFAULT_T_BASE_LIDAR, MapperConfig())
+    flat = detect(structured(ground_points(rng)), None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
     assert flat.clusters == [] and flat.plane.fitted
     assert flat.counts["ground"] == flat.counts["cropped"]
 
@@ -244,7 +244,7 @@ def tree_scan(tree_scene):
 
 def test_a_near_and_a_far_tree_are_one_cluster_each(tree_scene):
     scan, truths = tree_scene
-    detection = detect(scan.points, None, DEFAULT_T_BASE_LIDAR, MapperConfig())
+    detection = detect(scan.points, None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
     assert detection.plane.fitted and detection.plane.tilt_deg < 0.5
     assert len(detection.clusters) == 2
     near, far = sorted(detection.clusters, key=lambda c: np.hypot(*c.centroid[:2]))
@@ -261,13 +261,13 @@ def test_a_near_and_a_far_tree_are_one_cluster_each(tree_scene):
     # 12.4 m away the rings are 0.43 m apart: still one cluster at the 0.5 m tolerance,
     # one per ring (or pieces) at 0.3 m.
     assert len({int(r) for r in far.ring}) >= 4
-    split = MapperConfig(cluster=ClusterConfig(tolerance_m=0.3))
+    split = DetectionConfig(cluster=ClusterConfig(tolerance_m=0.3))
     assert len(detect(scan.points, None, DEFAULT_T_BASE_LIDAR, split).clusters) > 2
 
 
 def test_stage_times_are_reported_when_asked(tree_scan):
     stage_ms: dict[str, float] = {}
-    detect(tree_scan.points, None, DEFAULT_T_BASE_LIDAR, MapperConfig(), stage_ms)
+    detect(tree_scan.points, None, DEFAULT_T_BASE_LIDAR, DetectionConfig(), stage_ms)
     assert set(stage_ms) == {"crop", "ground", "ndvi_check", "voxel", "cluster", "features"}
     assert all(v >= 0 for v in stage_ms.values())
 
@@ -279,7 +279,7 @@ def test_ndvi_function_is_asked_only_for_points_clear_of_the_ground(tree_scan):
         asked.append(index)
         return np.full(len(index), 0.7)
 
-    detection = detect(tree_scan.points, ndvi_of, DEFAULT_T_BASE_LIDAR, MapperConfig())
+    detection = detect(tree_scan.points, ndvi_of, DEFAULT_T_BASE_LIDAR, DetectionConfig())
     assert len(asked) == 1
     heights = tree_scan.points["z"][asked[0]] + LIDAR_HEIGHT
     assert heights.min() >= 0.04 and len(asked[0]) < 0.5 * len(tree_scan.points)

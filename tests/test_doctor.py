@@ -19,8 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.service.config import load_config
-from pipeline.service.doctor import (
+from tests.test_camera_devices import make_sysfs
+from treetraits.cli.doctor import register
+from treetraits.service.config import load_config
+from treetraits.service.doctor import (
     Roots,
     Status,
     check_camera,
@@ -32,8 +34,6 @@ from pipeline.service.doctor import (
     check_udp,
     check_usb,
 )
-from tests.test_camera_devices import make_sysfs
-from treetraits.cli.doctor import register
 
 NOBODY = 65534
 
@@ -90,7 +90,7 @@ def test_serial_port_missing_and_not_a_device(tmp_path):
 
 _AS_NOBODY = """
 import json, os, sys
-from pipeline.service.doctor import check_serial_port, check_groups  # before /root is closed
+from treetraits.service.doctor import check_serial_port, check_groups  # before /root is closed
 os.setgroups([]); os.setgid(65534); os.setuid(65534)
 print(json.dumps([c.as_dict() for c in check_serial_port("gnss", sys.argv[1])]
                  + [check_groups().as_dict()]))

@@ -10,7 +10,6 @@ import math
 
 import pytest
 
-from sim.run import SurveySettings
 from treetraits.errors import ConfigError
 from treetraits.evaluation import cases as cases_module
 from treetraits.evaluation.cases import CASES, Case, PaperRow, select_cases
@@ -24,6 +23,7 @@ from treetraits.evaluation.metrics import (
 )
 from treetraits.evaluation.results import MethodSummary, best_method
 from treetraits.evaluation.run import cache_key, parse_methods
+from treetraits.sim.run import SurveySettings
 
 TRUTHS = [
     TruthTree("T1", "front", 100.0, 200.0, 2.0, 2.5),

@@ -12,14 +12,14 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers import recording
-from drivers.calibration import load_calibration
-from drivers.records import Frame
-from drivers.velodyne.sources import open_source
-from pipeline.fusion import FusionConfig, colorize_ndvi, fuse_scan
-from pipeline.ndvi import ndvi_image
-from pipeline.projection import PointStatus, max_valid_radius, scan_mid_time
 from tests.conftest import FIXTURES, VLP16_DIR, decode_file
+from treetraits.drivers import recording
+from treetraits.drivers.calibration import load_calibration
+from treetraits.drivers.records import Frame
+from treetraits.drivers.velodyne.sources import open_source
+from treetraits.pipeline.fusion import FusionConfig, colorize_ndvi, fuse_scan
+from treetraits.pipeline.ndvi import ndvi_image
+from treetraits.pipeline.projection import PointStatus, max_valid_radius, scan_mid_time
 
 CLI = [sys.executable, "-m", "treetraits"]
 CAPTURE = VLP16_DIR / "nebula_vlp16_dual_10hz.pcap"  # 4 scans, indoors, 0.5-15 m

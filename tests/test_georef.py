@@ -13,9 +13,11 @@ from datetime import datetime, timezone
 import numpy as np
 import pytest
 
-from drivers.records import Fix, Tree, WheelSample
-from pipeline.fieldmap import FieldTree, load_field_map
-from pipeline.georef import (
+from tests.conftest import CONTRACT_CSV_COLUMNS
+from treetraits.drivers.records import Fix, Tree, WheelSample
+from treetraits.errors import ConfigError
+from treetraits.pipeline.fieldmap import FieldTree, load_field_map
+from treetraits.pipeline.georef import (
     CSV_COLUMNS,
     FieldMapIndex,
     georeference,
@@ -24,11 +26,9 @@ from pipeline.georef import (
     write_trees_csv,
     write_trees_geojson,
 )
-from pipeline.localization import LocalizationConfig, Localizer
-from pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw
-from pipeline.mapper import TrackedTree
-from tests.conftest import CONTRACT_CSV_COLUMNS
-from treetraits.errors import ConfigError
+from treetraits.pipeline.localization import LocalizationConfig, Localizer
+from treetraits.pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw
+from treetraits.pipeline.mapper import TrackedTree
 
 GRID = UtmGrid.for_zone(11, north=True)  # a grove near Riverside, California
 E0, N0 = 467_000.0, 3_758_000.0

@@ -20,8 +20,9 @@ from pathlib import Path
 import pytest
 from pynmeagps import NMEAReader
 
-from drivers import recording
-from drivers.gnss import (
+from treetraits.cli import main
+from treetraits.drivers import recording
+from treetraits.drivers.gnss import (
     GGA,
     GSA,
     RMC,
@@ -33,8 +34,7 @@ from drivers.gnss import (
     decode,
     open_gnss_source,
 )
-from drivers.records import Fix
-from treetraits.cli import main
+from treetraits.drivers.records import Fix
 
 NMEA_DIR = Path(__file__).parent / "fixtures" / "nmea"
 EXPECTED = json.loads((NMEA_DIR / "expected_counts.json").read_text())["files"]

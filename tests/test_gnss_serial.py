@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from drivers.gnss import LogSource, SerialSource, open_gnss_source
 from treetraits.cli import main
+from treetraits.drivers.gnss import LogSource, SerialSource, open_gnss_source
 from treetraits.errors import SourceError
 
 NMEA_DIR = Path(__file__).parent / "fixtures" / "nmea"

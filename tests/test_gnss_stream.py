@@ -18,7 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.gnss import (
+from treetraits.drivers.gnss import (
     GGA,
     RMC,
     NmeaSummary,

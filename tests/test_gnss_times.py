@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from drivers.gnss.sentences import checksum
-from drivers.gnss.stream import SentenceSplitter
-from drivers.gnss.times import EPOCH_SPAN_NS, NmeaClock, nearest_utc_ns, publish_times
+from treetraits.drivers.gnss.sentences import checksum
+from treetraits.drivers.gnss.stream import SentenceSplitter
+from treetraits.drivers.gnss.times import EPOCH_SPAN_NS, NmeaClock, nearest_utc_ns, publish_times
 
 NMEA_DIR = Path(__file__).parent / "fixtures" / "nmea"
 UTC = dt.timezone.utc

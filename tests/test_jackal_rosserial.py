@@ -4,7 +4,8 @@ Expected bytes are built here, independently of the code under test: frames with
 checksums written out by hand, payloads with `struct` from the public .msg definitions, and
 md5sums recomputed from the .msg text with the ROS 1 algorithm. Then:
 
-- frames and messages decode exactly; the host's frames match the literals in the notes;
+- frames and messages decode exactly; the host's frames match literals built from the
+  rosserial protocol description;
 - bad length and data checksums, garbage between frames, truncated frames and a byte-by-byte
   feed all resync and lose no good frame;
 - fuzz (hypothesis): the reader never raises, gives the same frames however the bytes are
@@ -22,12 +23,17 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.records import WheelSample
-from firmware_bridge.jackal import messages as m
-from firmware_bridge.jackal import rosserial as rs
-from firmware_bridge.jackal.records import JackalFeedback, JackalImu, JackalNmea, JackalStatus
-from firmware_bridge.jackal.session import JackalProtocol, decode_stream
+from treetraits.drivers.records import WheelSample
 from treetraits.errors import ParseError
+from treetraits.firmware_bridge.jackal import messages as m
+from treetraits.firmware_bridge.jackal import rosserial as rs
+from treetraits.firmware_bridge.jackal.records import (
+    JackalFeedback,
+    JackalImu,
+    JackalNmea,
+    JackalStatus,
+)
+from treetraits.firmware_bridge.jackal.session import JackalProtocol, decode_stream
 
 FUZZ = settings(
     max_examples=200,
@@ -35,11 +41,11 @@ FUZZ = settings(
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 
-# --- an independent encoder (the notes' §2 and §6, written out) ------------------------------
+# --- an independent encoder (the rosserial protocol v2 frame layout, written out) ----------
 
 
 def ros_frame(topic: int, payload: bytes) -> bytes:
-    """A protocol v2 frame, checksums computed the way the notes state them."""
+    """A protocol v2 frame, checksums computed as the rosserial wiki states them."""
     n = len(payload)
     len_lo, len_hi = n & 0xFF, n >> 8
     length_checksum = 255 - ((len_lo + len_hi) % 256)
@@ -249,7 +255,7 @@ def test_layout_md5_matches_the_public_definition(name):
 def test_rosserial_md5s_and_the_notes_values():
     assert ros1_md5("rosserial_msgs/TopicInfo") == rs.TOPIC_INFO_MD5
     assert ros1_md5("rosserial_msgs/Log") == rs.LOG_MD5
-    notes = {  # jackal_mcu_protocol.md §4, §5
+    notes = {  # md5sums of the published jackal_msgs definitions
         "jackal_msgs/Feedback": "3bdabb0ef46338ee5672d1b82220ab49",
         "jackal_msgs/DriveFeedback": "8dd0b7a3cfa20cfc5c054ddd9763609b",
         "jackal_msgs/Drive": "601cf097cd47c174590c366c6ddd5fb3",
@@ -386,7 +392,7 @@ def test_topic_info_decodes_and_encodes_like_the_definition():
 
 def test_feedback_decodes_exactly():
     payload = feedback_bytes(frame_id="base_link")
-    assert len(feedback_bytes()) == 76  # the notes: 76 bytes with an empty frame_id
+    assert len(feedback_bytes()) == 76  # 76 bytes with an empty frame_id (the message layout)
     values = m.FEEDBACK.decode(payload)
     assert values["header"] == {
         "seq": 7,

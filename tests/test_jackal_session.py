@@ -26,18 +26,6 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from drivers.records import WheelSample
-from firmware_bridge.jackal.records import (
-    JackalFeedback,
-    JackalImu,
-    JackalMagnetometer,
-    JackalNmea,
-    JackalStatus,
-    LinkEvent,
-    SerialChunk,
-)
-from firmware_bridge.jackal.session import JackalSession
-from firmware_bridge.jackal.teleop import TeleopConfig
 from tests.test_jackal_rosserial import (
     feedback_bytes,
     imu_bytes,
@@ -47,7 +35,19 @@ from tests.test_jackal_rosserial import (
     status_bytes,
     topic_info_bytes,
 )
+from treetraits.drivers.records import WheelSample
 from treetraits.errors import SourceError
+from treetraits.firmware_bridge.jackal.records import (
+    JackalFeedback,
+    JackalImu,
+    JackalMagnetometer,
+    JackalNmea,
+    JackalStatus,
+    LinkEvent,
+    SerialChunk,
+)
+from treetraits.firmware_bridge.jackal.session import JackalSession
+from treetraits.firmware_bridge.jackal.teleop import TeleopConfig
 
 FEEDBACK_MD5 = "3bdabb0ef46338ee5672d1b82220ab49"
 STATUS_MD5 = "c851ebcf9a6e20b196bc7894e285b4f6"

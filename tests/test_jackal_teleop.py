@@ -13,8 +13,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge.jackal.messages import MODE_VELOCITY, STOP, Drive
-from firmware_bridge.jackal.teleop import (
+from treetraits.errors import ConfigError
+from treetraits.firmware_bridge.jackal.messages import MODE_VELOCITY, STOP, Drive
+from treetraits.firmware_bridge.jackal.teleop import (
     DriveGate,
     JoystickState,
     JoystickTracker,
@@ -23,7 +24,6 @@ from firmware_bridge.jackal.teleop import (
     parse_js_events,
     teleop_drive,
 )
-from treetraits.errors import ConfigError
 
 BUTTON, AXIS, INIT = 0x01, 0x02, 0x80
 CONFIG = TeleopConfig()  # deadman 4, linear axis 1, angular axis 0, limit 0.5 m/s

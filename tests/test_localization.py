@@ -15,9 +15,9 @@ import math
 import numpy as np
 import pytest
 
-from drivers.records import Fix, WheelSample
-from pipeline.localization import LocalizationConfig, Localizer, WheelGeometry
-from pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw, wrap_angle
+from treetraits.drivers.records import Fix, WheelSample
+from treetraits.pipeline.localization import LocalizationConfig, Localizer, WheelGeometry
+from treetraits.pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw, wrap_angle
 
 ORIGIN = (467_000.0, 3_758_000.0)  # easting, northing in 11N
 GRID = UtmGrid.for_zone(11, north=True)
@@ -106,10 +106,10 @@ def sensors(
     return events
 
 
-def run(events, config=None):
+def run(events, config=None, T_base_gnss=None):
     # Keep the whole drive in the pose history, so every truth pose can be checked.
     config = dataclasses.replace(config or LocalizationConfig(), history_s=1e4)
-    localizer = Localizer(config, WHEELS)
+    localizer = Localizer(config, WHEELS, T_base_gnss)
     verdicts = {}
     for event in events:
         if isinstance(event, WheelSample):
@@ -189,8 +189,9 @@ def test_lever_arm_is_removed():
     lever = (0.4, 0.2)
     t_base_gnss = np.eye(4)
     t_base_gnss[:2, 3] = lever
-    config = LocalizationConfig(T_base_gnss=t_base_gnss)
-    localizer, _ = run(sensors(poses, rng, heading_sigma_deg=0.5, lever=lever), config)
+    localizer, _ = run(
+        sensors(poses, rng, heading_sigma_deg=0.5, lever=lever), T_base_gnss=t_base_gnss
+    )
     position, _ = errors(localizer, poses, after_s=1.0)
     assert position.max() < 0.10
     naive, _ = run(sensors(poses, np.random.default_rng(3), heading_sigma_deg=0.5, lever=lever))
@@ -323,8 +324,7 @@ def test_a_robot_that_starts_by_turning_gets_its_heading_from_the_first_straight
     lever = (-0.18, 0.0)
     t_base_gnss = np.eye(4)
     t_base_gnss[:2, 3] = lever
-    config = LocalizationConfig(T_base_gnss=t_base_gnss)
-    localizer, _ = run(sensors(poses, rng, lever=lever), config)
+    localizer, _ = run(sensors(poses, rng, lever=lever), T_base_gnss=t_base_gnss)
     position, heading = errors(localizer, poses, after_s=7.5)
     assert heading.max() < 3.0
     assert position.max() < 0.10

@@ -13,8 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.calibration import load_calibration
-from pipeline.ndvi import (
+from tests.conftest import FIXTURES
+from treetraits.drivers.calibration import load_calibration
+from treetraits.errors import CalibrationError
+from treetraits.pipeline.ndvi import (
     MAPIR_TARGET_V2,
     TARGET_V2_MARKER_IN,
     TARGET_V2_PANELS_IN,
@@ -30,8 +32,6 @@ from pipeline.ndvi import (
     sample_panels,
     vegetation_mask,
 )
-from tests.conftest import FIXTURES
-from treetraits.errors import CalibrationError
 
 CITRUSFARM = FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json"
 CLI = [sys.executable, "-m", "treetraits"]

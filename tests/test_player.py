@@ -15,15 +15,15 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers import recording as rec
-from drivers.camera.replay import VideoFileSource
-from drivers.gnss.sources import SerialSource
-from drivers.records import WheelSample
-from firmware_bridge.jackal import rosserial as rs
-from firmware_bridge.jackal.session import JackalSession, decode_stream
-from sim.player import RecordingPlayer, write_camera_video
-from sim.run import SurveySettings, simulate_survey
+from treetraits.drivers import recording as rec
+from treetraits.drivers.camera.replay import VideoFileSource
+from treetraits.drivers.gnss.sources import SerialSource
+from treetraits.drivers.records import WheelSample
 from treetraits.errors import SourceError
+from treetraits.firmware_bridge.jackal import rosserial as rs
+from treetraits.firmware_bridge.jackal.session import JackalSession, decode_stream
+from treetraits.sim.player import RecordingPlayer, write_camera_video
+from treetraits.sim.run import SurveySettings, simulate_survey
 
 SPEED = 2.0
 

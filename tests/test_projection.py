@@ -8,9 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.calibration import CameraModel, load_calibration
-from drivers.records import POINT_DTYPE, Scan
-from pipeline.projection import (
+from tests.conftest import FIXTURES
+from treetraits.drivers.calibration import CameraModel, load_calibration
+from treetraits.drivers.records import POINT_DTYPE, Scan
+from treetraits.pipeline.projection import (
     OcclusionRule,
     PointStatus,
     max_valid_radius,
@@ -20,7 +21,6 @@ from pipeline.projection import (
     project_points,
     scan_mid_time,
 )
-from tests.conftest import FIXTURES
 
 CITRUSFARM = FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json"
 

@@ -18,7 +18,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 import treetraits
-from drivers import recording as rec
+from treetraits.drivers import recording as rec
 from treetraits.errors import SourceError
 
 # The contract's table, verbatim.

@@ -10,11 +10,12 @@ import sqlite3
 
 import pytest
 
-from pipeline.replay import ReplayOptions, run_replay
-from sim.gnss import GnssSettings
-from sim.run import SurveySettings, simulate_survey
 from tests.conftest import CONTRACT_CSV_COLUMNS
 from treetraits.cli import main
+from treetraits.service.config import ServiceConfig, with_method
+from treetraits.service.replay import ReplayOptions, run_replay
+from treetraits.sim.gnss import GnssSettings
+from treetraits.sim.run import SurveySettings, simulate_survey
 
 
 @pytest.fixture(scope="module")
@@ -47,8 +48,9 @@ def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
             float(row["easting"]) - float(expected["easting"]),
             float(row["northing"]) - float(expected["northing"]),
         )
-        # The cluster centroid sits on the crown's visible side, towards the robot.
-        assert gap < 1.0  # (crown radius 1.35 m: the visible half has its centroid ~0.6-0.9 m in)
+        # The reported position is the centre of the accumulated crown outline; seen from
+        # one side it is still pulled a little towards the robot (crown radius 1.35 m).
+        assert gap < 1.0
         assert abs(float(row["width_m"]) / float(expected["width_m"]) - 1) < 0.1
         assert 0.6 < float(row["ndvi"]) < 0.9  # the twin's foliage reads NDVI 0.75
         assert row["first_seen"].endswith("Z") and row["first_seen"] < row["last_seen"]
@@ -60,7 +62,8 @@ def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
 
     db = sqlite3.connect(tmp_path / "traits.sqlite")
     assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
-    # The store keeps every tree the mapper made, stray one-scan clusters included.
+    # The store's trees table holds every tree once seen in min_observations scans (trees
+    # later merged into another included); observations hold every associated cluster.
     assert db.execute("SELECT COUNT(*) FROM trees").fetchone()[0] >= 6
     scans = db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0]
     assert scans > 100
@@ -77,7 +80,9 @@ def test_same_input_same_outputs(survey, tmp_path):
 
 @pytest.mark.parametrize(("method", "traits"), [("paper", "robust"), ("rph-vlp16", "paper")])
 def test_other_methods_run_on_the_same_survey(survey, tmp_path, method, traits):
-    report = run_replay(survey.recording, tmp_path, ReplayOptions(method=method, traits=traits))
+    report = run_replay(
+        survey.recording, tmp_path, ReplayOptions(with_method(ServiceConfig(), method, traits))
+    )
     assert sorted(t.field_id for t in report.trees if t.field_id) == sorted(truth_rows(survey))
     assert report.summary["method"] == method
 
@@ -97,6 +102,25 @@ def test_bad_options_are_refused(survey, tmp_path):
         )
         == 2
     )
+
+
+def test_replay_takes_the_service_config(survey, tmp_path, capsys):
+    """`--config`: the same TOML file as `treetraits run`; its gates and pipeline sections
+    reach the replay, and a bad key stops it before anything is written."""
+    config = tmp_path / "config.toml"
+    # Seen in more scans than the drive has: no tree is reported, the store still fills.
+    config.write_text("[output]\nmin_observations = 100000\n[traits]\nmethod = 'robust'\n")
+    out = tmp_path / "strict"
+    assert main(["replay", str(survey.recording), "--out", str(out), "--config", str(config)]) == 0
+    assert "0 trees" in capsys.readouterr().out
+    facts = dict(sqlite3.connect(out / "traits.sqlite").execute("SELECT key, value FROM run"))
+    assert facts["traits"] == "robust"
+
+    config.write_text("[tracking]\nth_p = 2.0\n")
+    bad = tmp_path / "bad"
+    assert main(["replay", str(survey.recording), "--out", str(bad), "--config", str(config)]) == 2
+    assert "tracking.th_p and th_h must be in [0, 1]" in capsys.readouterr().err
+    assert not bad.exists()
 
 
 def test_a_run_without_gnss_maps_in_odom(tmp_path):

@@ -22,11 +22,16 @@ from pathlib import Path
 
 import pytest
 
-from drivers.records import WheelSample
-from firmware_bridge.retrofit import protocol as p
-from firmware_bridge.retrofit.reader import BridgeDecoder, BridgeReader
-from firmware_bridge.retrofit.serial_link import LinkEvent, RetrofitSource, SerialLink, open_bridge
+from treetraits.drivers.records import WheelSample
 from treetraits.errors import SourceError
+from treetraits.firmware_bridge.retrofit import protocol as p
+from treetraits.firmware_bridge.retrofit.reader import BridgeDecoder, BridgeReader
+from treetraits.firmware_bridge.retrofit.serial_link import (
+    LinkEvent,
+    RetrofitSource,
+    SerialLink,
+    open_bridge,
+)
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "firmware_bridge" / "firmware"
 CORE = ["core/quadrature.c", "core/frame.c", "core/bridge.c"]

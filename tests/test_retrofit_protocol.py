@@ -14,10 +14,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.records import WheelSample
-from firmware_bridge.retrofit import protocol as p
-from firmware_bridge.retrofit.reader import BridgeDecoder, BridgeReader, TickOdometer
+from treetraits.drivers.records import WheelSample
 from treetraits.errors import ParseError
+from treetraits.firmware_bridge.retrofit import protocol as p
+from treetraits.firmware_bridge.retrofit.reader import BridgeDecoder, BridgeReader, TickOdometer
 
 # ---------------------------------------------------------------- reference implementation
 

@@ -15,11 +15,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from drivers.calibration import DEFAULT_T_BASE_LIDAR
-from drivers.records import POINT_DTYPE, Pose, Scan
-from drivers.velodyne.batcher import ScanBatcher
-from pipeline.projection import scan_mid_time
-from pipeline.rph import (
+from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
+from treetraits.drivers.records import POINT_DTYPE, Pose, Scan
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.errors import ConfigError
+from treetraits.pipeline.projection import scan_mid_time
+from treetraits.pipeline.rph import (
     DetectorConfig,
     ElevationMapConfig,
     RphConfig,
@@ -28,12 +29,11 @@ from pipeline.rph import (
     remove_ground,
     rph_config,
 )
-from pipeline.rph.clustering import euclidean_clusters
-from pipeline.rph.detector import principal_alignment
-from pipeline.rph.elevation_map import disk_offsets, median_filter
-from sim.lidar import Scene, Vlp16Emulator
-from sim.orchard import Ground, grid_orchard, ground_mesh, measure_truth, tree_mesh
-from treetraits.errors import ConfigError
+from treetraits.pipeline.rph.clustering import euclidean_clusters
+from treetraits.pipeline.rph.detector import principal_alignment
+from treetraits.pipeline.rph.elevation_map import disk_offsets, median_filter
+from treetraits.sim.lidar import Scene, Vlp16Emulator
+from treetraits.sim.orchard import Ground, grid_orchard, ground_mesh, measure_truth, tree_mesh
 
 SHIPPED = RphConfig.shipped()
 RETUNED = RphConfig.retuned_vlp16()

@@ -8,7 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.service.config import (
+from treetraits.cli import config as config_cli
+from treetraits.errors import ConfigError
+from treetraits.service.config import (
     ServiceConfig,
     dump_config,
     load_config,
@@ -16,8 +18,6 @@ from pipeline.service.config import (
     tomllib,
     with_overrides,
 )
-from treetraits.cli import config as config_cli
-from treetraits.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import pytest
 
-from drivers import recording as rec
-from sim.player import RecordingPlayer, write_camera_video
-from sim.run import SurveySettings, simulate_survey
+from treetraits.drivers import recording as rec
+from treetraits.sim.player import RecordingPlayer, write_camera_video
+from treetraits.sim.run import SurveySettings, simulate_survey
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -13,12 +13,12 @@ from types import SimpleNamespace
 
 import pytest
 
-from drivers import recording as rec
-from pipeline.service.config import GnssConfig, LidarConfig, ServiceConfig
-from pipeline.service.health import SensorState, assess, sensor_problem, status_line
-from pipeline.service.notify import Notifier, watchdog_period_s
-from pipeline.service.runtime import Service, new_run_dir
-from pipeline.service.workers import (
+from treetraits.drivers import recording as rec
+from treetraits.service.config import GnssConfig, LidarConfig, ServiceConfig
+from treetraits.service.health import SensorState, assess, sensor_problem, status_line
+from treetraits.service.notify import Notifier, watchdog_period_s
+from treetraits.service.runtime import Service, new_run_dir
+from treetraits.service.workers import (
     BoundedQueue,
     GnssWorker,
     LidarWorker,

@@ -8,15 +8,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.calibration import load_calibration
-from drivers.records import Frame
-from drivers.velodyne.batcher import ScanBatcher
-from pipeline.fusion import fuse_scan
-from pipeline.ndvi import ndvi_image
-from sim.camera import FOLIAGE, SOIL, Survey3Emulator
-from sim.lidar import Scene, Vlp16Emulator
-from sim.orchard import Ground, grid_orchard, ground_mesh, tree_mesh
 from tests.conftest import FIXTURES
+from treetraits.drivers.calibration import load_calibration
+from treetraits.drivers.records import Frame
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.pipeline.fusion import fuse_scan
+from treetraits.pipeline.ndvi import ndvi_image
+from treetraits.sim.camera import FOLIAGE, SOIL, Survey3Emulator
+from treetraits.sim.lidar import Scene, Vlp16Emulator
+from treetraits.sim.orchard import Ground, grid_orchard, ground_mesh, tree_mesh
 
 CALIBRATION = load_calibration(FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json")
 

@@ -9,11 +9,18 @@ import math
 import numpy as np
 import pytest
 
-from drivers.calibration import DEFAULT_T_BASE_LIDAR
-from drivers.velodyne import models as m
-from drivers.velodyne.batcher import ScanBatcher
-from sim.lidar import LidarSettings, Scene, Vlp16Emulator
-from sim.orchard import Ground, TreeSpec, grid_orchard, ground_mesh, measure_truth, tree_mesh
+from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
+from treetraits.drivers.velodyne import models as m
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.sim.lidar import LidarSettings, Scene, Vlp16Emulator
+from treetraits.sim.orchard import (
+    Ground,
+    TreeSpec,
+    grid_orchard,
+    ground_mesh,
+    measure_truth,
+    tree_mesh,
+)
 
 LIDAR_HEIGHT = DEFAULT_T_BASE_LIDAR[2, 3]
 

@@ -11,19 +11,19 @@ import math
 import numpy as np
 import pytest
 
-from drivers import recording as rec
-from drivers.gnss.epochs import EpochAssembler
-from drivers.gnss.sentences import decode
-from drivers.gnss.sources import open_gnss_source
-from drivers.records import Scan, WheelSample
-from drivers.velodyne.reader import LidarReader
-from drivers.velodyne.sources import open_source
-from firmware_bridge.jackal.session import decode_stream
-from pipeline.localization import LocalizationConfig, Localizer
-from sim.gnss import GnssSettings
-from sim.paths import drive, waypoints
-from sim.run import ORIGIN_UTM, SurveySettings, simulate_survey
 from treetraits.cli import main
+from treetraits.drivers import recording as rec
+from treetraits.drivers.gnss.epochs import EpochAssembler
+from treetraits.drivers.gnss.sentences import decode
+from treetraits.drivers.gnss.sources import open_gnss_source
+from treetraits.drivers.records import Scan, WheelSample
+from treetraits.drivers.velodyne.reader import LidarReader
+from treetraits.drivers.velodyne.sources import open_source
+from treetraits.firmware_bridge.jackal.session import decode_stream
+from treetraits.pipeline.localization import LocalizationConfig, Localizer
+from treetraits.sim.gnss import GnssSettings
+from treetraits.sim.paths import drive, waypoints
+from treetraits.sim.run import ORIGIN_UTM, SurveySettings, simulate_survey
 
 SETTINGS = SurveySettings(
     path="straight", goal=8.0, seed=5, gnss=dataclasses.replace(GnssSettings(), dual_antenna=True)
@@ -85,7 +85,7 @@ def test_gnss_and_wheels_fuse_back_onto_the_true_path(survey):
     with rec.read_recording(survey.recording, topics=[]) as recording:
         calibration = recording.metadata.calibration
     t_base_gnss = np.asarray(calibration["T_base_gnss"]).reshape(4, 4)
-    localizer = Localizer(LocalizationConfig(T_base_gnss=t_base_gnss, history_s=1e4))
+    localizer = Localizer(LocalizationConfig(history_s=1e4), T_base_gnss=t_base_gnss)
     events = sorted([*fixes, *wheels], key=lambda e: e.t_host)
     for event in events:
         if isinstance(event, WheelSample):

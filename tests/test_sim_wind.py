@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from sim.lidar import Scene
-from sim.orchard import Ground, TreeSpec, TreeTruth, WindSettings, tree_mesh, tree_sways
-from sim.run import SurveySettings, build_orchard
 from treetraits.cli import main
+from treetraits.sim.lidar import Scene
+from treetraits.sim.orchard import Ground, TreeSpec, TreeTruth, WindSettings, tree_mesh, tree_sways
+from treetraits.sim.run import SurveySettings, build_orchard
 
 
 def box(x0, x1, y0, y1, z0, z1):

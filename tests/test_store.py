@@ -11,8 +11,8 @@ import sys
 import textwrap
 import time
 
-from drivers.records import Tree
-from pipeline.store import Observation, TraitStore
+from treetraits.drivers.records import Tree
+from treetraits.service.store import Observation, TraitStore
 
 
 def tree(i: int, observations: int = 1) -> Tree:
@@ -56,7 +56,7 @@ def test_kill_9_mid_scan_loses_only_that_scan(tmp_path):
         import sys, time
         sys.path.insert(0, {str(os.getcwd())!r})
         from tests.test_store import tree
-        from pipeline.store import Observation, TraitStore
+        from treetraits.service.store import Observation, TraitStore
         store = TraitStore({str(path)!r})
         for scan in range(1, 1_000_000):
             observations = [Observation(scan, f"T{{i}}", 0, 0, 0, "utm", 2.7, 2.6, 0.7, 100)
@@ -113,7 +113,7 @@ def test_a_commit_failing_on_a_full_disk_leaves_the_store_usable(tmp_path):
         """
         import os, resource, signal, sqlite3, sys
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        from pipeline.store import Observation, TraitStore
+        from treetraits.service.store import Observation, TraitStore
         from tests.test_store import tree
         path = sys.argv[1]
         store = TraitStore(path)

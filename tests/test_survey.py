@@ -10,13 +10,14 @@ import statistics
 import numpy as np
 import pytest
 
-from drivers import recording as rec
-from drivers.calibration import load_calibration
-from pipeline.projection import scan_mid_time
-from pipeline.replay import ReplayOptions, make_mapper
-from pipeline.survey import POSE_WAIT_NS, SurveyProcessor
-from sim.gnss import GnssSettings
-from sim.run import SurveySettings, simulate_survey
+from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import load_calibration
+from treetraits.pipeline.projection import scan_mid_time
+from treetraits.service.config import ServiceConfig
+from treetraits.service.replay import make_processor
+from treetraits.service.survey import POSE_WAIT_NS
+from treetraits.sim.gnss import GnssSettings
+from treetraits.sim.run import SurveySettings, simulate_survey
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +43,7 @@ def messages(survey, without=()):
 def run(survey, without=()):
     """Every outcome with the log_time of the message that let it through."""
     kept, calibration = messages(survey, without)
-    processor = SurveyProcessor(make_mapper(ReplayOptions(), calibration), calibration)
+    processor = make_processor(ServiceConfig(), calibration)
     out = []
     for topic, data, log_time, publish_time in kept:
         out.extend((o, log_time) for o in processor.feed(topic, data, log_time, publish_time))

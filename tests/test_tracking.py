@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from drivers.calibration import DEFAULT_T_BASE_LIDAR
-from pipeline.config import TrackingConfig
-from pipeline.tracking import (
+from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
+from treetraits.pipeline.config import TrackingConfig
+from treetraits.pipeline.tracking import (
     Motion,
     Tracker,
     mahalanobis,

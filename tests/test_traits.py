@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.config import MapperConfig, TraitsConfig
-from pipeline.mapper import TreeMapper
-from pipeline.traits import PaperTraits, RobustTraits, caliper, new_traits, slice_width
 from tests.test_mapper import grid_drive, mapped, match
+from treetraits.pipeline.config import MapperConfig, TraitsConfig
+from treetraits.pipeline.mapper import TreeMapper
+from treetraits.pipeline.traits import PaperTraits, RobustTraits, caliper, new_traits, slice_width
 
 CONFIG = TraitsConfig()
 

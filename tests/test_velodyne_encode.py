@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.velodyne.encode import encode_packets
-from drivers.velodyne.packet import view_packets
-from drivers.velodyne.sources import open_source
 from tests.conftest import VLP16_DIR
+from treetraits.drivers.velodyne.encode import encode_packets
+from treetraits.drivers.velodyne.packet import view_packets
+from treetraits.drivers.velodyne.sources import open_source
 
 
 @pytest.mark.parametrize(

@@ -22,11 +22,11 @@ import numpy as np
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from drivers.velodyne.batcher import ScanBatcher
-from drivers.velodyne.reader import LidarReader
-from drivers.velodyne.sources import open_source
-from drivers.velodyne.telemetry import decode_telemetry
 from tests.conftest import VLP16_DIR
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.drivers.velodyne.reader import LidarReader
+from treetraits.drivers.velodyne.sources import open_source
+from treetraits.drivers.velodyne.telemetry import decode_telemetry
 from treetraits.errors import ParseError, SourceError
 
 HOUR_US = 3_600_000_000

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import velodyne_decoder as vd
 
-from drivers.velodyne import models as m
-from drivers.velodyne.batcher import ScanBatcher
-from drivers.velodyne.sources import open_source
 from tests.conftest import VLP16_CAPTURES, VLP16_DIR, reference
+from treetraits.drivers.velodyne import models as m
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.drivers.velodyne.sources import open_source
 
 PEER_AZIMUTH_ROUNDING_RAD = np.deg2rad(0.005)
 

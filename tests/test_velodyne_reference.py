@@ -13,9 +13,9 @@ import sys
 import numpy as np
 import pytest
 
-from drivers.velodyne import models as m
 from tests.conftest import VLP16_CAPTURES, VLP16_DIR, decode_file, reference
 from treetraits.cli import main
+from treetraits.drivers.velodyne import models as m
 
 
 def lidar_info(path, capsys) -> dict:

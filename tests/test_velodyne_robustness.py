@@ -3,8 +3,8 @@
 Every stream starts from real captures (mostly the einride raw file: 1000 back-to-back
 single-return payloads, `t_host` = ToH x 1000 ns) and is damaged on purpose: packets
 lost, repeated, reordered, delivered late, malformed, re-timed, re-labelled. Expected
-values come from the undamaged decode, from the reference JSONs, from the spec
-(/work/shared/research/vlp16_spec.md) or from arithmetic on the packet list, never from
+values come from the undamaged decode, from the reference JSONs, from the VLP-16 user
+manual (Velodyne 63-9243) or from arithmetic on the packet list, never from
 the code under test on the same damaged input.
 """
 
@@ -19,11 +19,11 @@ import struct
 import numpy as np
 import pytest
 
-from drivers.records import Scan
-from drivers.velodyne.batcher import BatcherStats, ScanBatcher
-from drivers.velodyne.sources import LidarPacket, open_source
-from drivers.velodyne.telemetry import decode_telemetry
 from tests.conftest import VLP16_DIR, decode_file, reference
+from treetraits.drivers.records import Scan
+from treetraits.drivers.velodyne.batcher import BatcherStats, ScanBatcher
+from treetraits.drivers.velodyne.sources import LidarPacket, open_source
+from treetraits.drivers.velodyne.telemetry import decode_telemetry
 from treetraits.errors import ParseError
 
 EINRIDE = "einride_vlp16_strongest_1000pkts.bin"
@@ -33,10 +33,10 @@ HDL32E_SENTENCE = "$GPRMC,214616,A,3708.3443,N,12139.4299,W,009.7,040.6,111212,0
 
 HOUR_US = 3_600_000_000
 HOUR_NS = HOUR_US * 1000
-# Spec §4: the last firing of a single-return packet (block 11, 2nd sequence, laser 15)
+# The manual's timing: last firing of a single-return packet (block 11, 2nd sequence, laser 15)
 # is 1306.368 us after the packet's ToH; the next packet comes >= 1327 us later.
 LAST_FIRING_NS = 11 * 110_592 + 55_296 + 15 * 2_304
-# Spec §3, by ring (rank of the elevation, 0 = lowest): elevation in degrees and the
+# Manual Table 9-1, by ring (rank of the elevation, 0 = lowest): elevation in degrees and the
 # vertical offset of the beam origin in mm.
 VLP16_ELEVATION_BY_RING = [-15 + 2 * ring for ring in range(16)]
 VLP16_OFFSET_MM_BY_RING = [11.2, 9.7, 8.1, 6.6, 5.1, 3.7, 2.2, 0.7]

@@ -21,15 +21,15 @@ import dpkt
 import numpy as np
 import pytest
 
-from drivers import recording
-from drivers.records import Scan
-from drivers.velodyne.sources import (
+from tests.conftest import VLP16_DIR, decode_file, reference
+from treetraits.drivers import recording
+from treetraits.drivers.records import Scan
+from treetraits.drivers.velodyne.sources import (
     McapSource,
     PcapSource,
     RawPayloadSource,
     open_source,
 )
-from tests.conftest import VLP16_DIR, decode_file, reference
 from treetraits.errors import SourceError
 
 CAPTURE = "veloview_vlp16_20hz_strongest.pcap"  # Ethernet, data (2368) and position (8308)

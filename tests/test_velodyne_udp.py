@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.records import Scan
-from drivers.velodyne.reader import LidarReader
-from drivers.velodyne.sources import DEFAULT_RCVBUF, LidarPacket, UdpSource, open_source
 from tests.conftest import VLP16_DIR, decode_file, reference
+from treetraits.drivers.records import Scan
+from treetraits.drivers.velodyne.reader import LidarReader
+from treetraits.drivers.velodyne.sources import DEFAULT_RCVBUF, LidarPacket, UdpSource, open_source
 from treetraits.errors import SourceError
 
 CAPTURE = "veloview_vlp16_20hz_strongest.pcap"

@@ -5,16 +5,16 @@ Frames keep the camera's JPEG bytes and are decoded only when the pipeline asks 
 See docs/camera.md.
 """
 
-from drivers.camera.frames import CameraStats, FrameRing, decode_frame, nearest_index
-from drivers.camera.live import ControlOutcome, Negotiation, UvcCamera
-from drivers.camera.replay import (
+from treetraits.drivers.camera.frames import CameraStats, FrameRing, decode_frame, nearest_index
+from treetraits.drivers.camera.live import ControlOutcome, Negotiation, UvcCamera
+from treetraits.drivers.camera.replay import (
     FolderWriter,
     ImageFolderSource,
     RecordingSource,
     VideoFileSource,
 )
-from drivers.camera.settings import CameraSettings
-from drivers.camera.sources import CameraSource, open_camera_source, record_frame
+from treetraits.drivers.camera.settings import CameraSettings
+from treetraits.drivers.camera.sources import CameraSource, open_camera_source, record_frame
 
 __all__ = [
     "CameraSettings",

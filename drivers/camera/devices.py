@@ -22,7 +22,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from drivers.camera import v4l2
+from treetraits.drivers.camera import v4l2
 from treetraits.errors import ConfigError, SourceError
 
 SYSFS = Path("/sys")

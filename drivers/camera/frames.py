@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from drivers.records import Frame
+from treetraits.drivers.records import Frame
 from treetraits.errors import ParseError
 
 JPEG_SOI = b"\xff\xd8"  # every JPEG starts with the start-of-image marker

@@ -33,8 +33,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from drivers.camera.devices import DEV, SYSFS, describe_node, resolve_device
-from drivers.camera.frames import (
+from treetraits.drivers.camera.devices import DEV, SYSFS, describe_node, resolve_device
+from treetraits.drivers.camera.frames import (
     CameraStats,
     FrameRing,
     capture_time_ns,
@@ -44,9 +44,9 @@ from drivers.camera.frames import (
     looks_like_jpeg,
     sample_clocks,
 )
-from drivers.camera.settings import CameraSettings
-from drivers.camera.v4l2 import fourcc_code, fourcc_text
-from drivers.records import Frame
+from treetraits.drivers.camera.settings import CameraSettings
+from treetraits.drivers.camera.v4l2 import fourcc_code, fourcc_text
+from treetraits.drivers.records import Frame
 from treetraits.errors import SourceError
 
 log = logging.getLogger("treetraits.camera")

@@ -30,7 +30,7 @@ from typing import IO
 import cv2
 import numpy as np
 
-from drivers.camera.frames import (
+from treetraits.drivers.camera.frames import (
     DEFAULT_RING_SIZE,
     CameraStats,
     FrameRing,
@@ -39,8 +39,8 @@ from drivers.camera.frames import (
     encode_jpeg,
     looks_like_jpeg,
 )
-from drivers.camera.v4l2 import fourcc_text
-from drivers.records import Frame
+from treetraits.drivers.camera.v4l2 import fourcc_text
+from treetraits.drivers.records import Frame
 from treetraits.errors import SourceError
 
 TIMESTAMPS_CSV = "timestamps.csv"
@@ -343,7 +343,7 @@ class RecordingSource(_ReplaySource):
     kind = "recording"
 
     def __init__(self, path: str | os.PathLike[str], ring_size: int = DEFAULT_RING_SIZE):
-        from drivers import recording
+        from treetraits.drivers import recording
 
         super().__init__(os.fspath(path), ring_size)
         self.path = Path(path)

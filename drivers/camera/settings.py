@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drivers.camera.frames import DEFAULT_RING_SIZE
+from treetraits.drivers.camera.frames import DEFAULT_RING_SIZE
 from treetraits.errors import ConfigError
 
 

@@ -15,17 +15,17 @@ from typing import Protocol
 
 import numpy as np
 
-from drivers.camera.devices import DEV, SYSFS
-from drivers.camera.frames import CameraStats
-from drivers.camera.live import CaptureFactory, UvcCamera
-from drivers.camera.replay import (
+from treetraits.drivers.camera.devices import DEV, SYSFS
+from treetraits.drivers.camera.frames import CameraStats
+from treetraits.drivers.camera.live import CaptureFactory, UvcCamera
+from treetraits.drivers.camera.replay import (
     VIDEO_SUFFIXES,
     ImageFolderSource,
     RecordingSource,
     VideoFileSource,
 )
-from drivers.camera.settings import CameraSettings
-from drivers.records import Frame
+from treetraits.drivers.camera.settings import CameraSettings
+from treetraits.drivers.records import Frame
 from treetraits.errors import SourceError
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -98,6 +98,6 @@ def open_camera_source(
 def record_frame(writer, frame: Frame) -> None:
     """Append one frame to a recording (`drivers.recording.RecordingWriter`): the JPEG on
     `/camera/jpeg`, `log_time` = `t_host`, `publish_time` = `t_capture`."""
-    from drivers.recording import CAMERA_JPEG
+    from treetraits.drivers.recording import CAMERA_JPEG
 
     writer.write(CAMERA_JPEG, frame.jpeg, frame.t_host, frame.t_capture)

@@ -7,8 +7,8 @@ records by UTC time into `drivers.records.Fix`. `open_gnss_source(uri)` gives th
 of a live receiver, a log or a recording alike. Conventions: docs/gnss.md.
 """
 
-from drivers.gnss.epochs import EpochAssembler, EpochStats, assemble
-from drivers.gnss.sentences import (
+from treetraits.drivers.gnss.epochs import EpochAssembler, EpochStats, assemble
+from treetraits.drivers.gnss.sentences import (
     GGA,
     GSA,
     GST,
@@ -26,7 +26,7 @@ from drivers.gnss.sentences import (
     parse_sentence,
     sentence_type,
 )
-from drivers.gnss.sources import (
+from treetraits.drivers.gnss.sources import (
     GnssSource,
     LogSource,
     RecordingSource,
@@ -34,8 +34,8 @@ from drivers.gnss.sources import (
     SourceStats,
     open_gnss_source,
 )
-from drivers.gnss.stream import SentenceSplitter, SplitterStats
-from drivers.gnss.summary import NmeaSummary, summarise
+from treetraits.drivers.gnss.stream import SentenceSplitter, SplitterStats
+from treetraits.drivers.gnss.summary import NmeaSummary, summarise
 
 __all__ = [
     "GGA",

@@ -28,8 +28,8 @@ import datetime as dt
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 
-from drivers.gnss.sentences import GGA, GST, HDT, RMC, THS, VTG, ZDA, NmeaRecord
-from drivers.records import Fix
+from treetraits.drivers.gnss.sentences import GGA, GST, HDT, RMC, THS, VTG, ZDA, NmeaRecord
+from treetraits.drivers.records import Fix
 
 NS_PER_DAY = 86_400 * 1_000_000_000
 _EPOCH_DATE = dt.date(1970, 1, 1)

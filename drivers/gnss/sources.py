@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Protocol
 from urllib.parse import parse_qs, urlsplit
 
-from drivers.gnss.sentences import Sentence
-from drivers.gnss.stream import SentenceSplitter
+from treetraits.drivers.gnss.sentences import Sentence
+from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.errors import SourceError
 
 DEFAULT_BAUD = 9600  # most receivers' factory setting (u-blox ZED-F9P UART1: 38400)
@@ -119,7 +119,7 @@ class RecordingSource(_SplittingSource):
     is_live = False
 
     def __init__(self, path: str | os.PathLike[str], max_length: int | None = None):
-        from drivers import recording
+        from treetraits.drivers import recording
 
         super().__init__(os.fspath(path), max_length)
         self._recording = recording.read_recording(path, topics=[recording.GNSS_NMEA])

@@ -22,7 +22,7 @@ from __future__ import annotations
 import re
 from dataclasses import asdict, dataclass
 
-from drivers.gnss.sentences import NMEA_MAX_LENGTH, Sentence, checksum
+from treetraits.drivers.gnss.sentences import NMEA_MAX_LENGTH, Sentence, checksum
 
 # Longest sentence accepted, `$` to line end. NMEA says 82; $PUBX,03 with many satellites
 # or a long proprietary sentence can be several hundred, so the default leaves room.

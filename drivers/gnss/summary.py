@@ -13,10 +13,10 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 
-from drivers.gnss.epochs import NS_PER_DAY, EpochAssembler
-from drivers.gnss.sentences import GGA, HDT, THS, Sentence, decode, sentence_type
-from drivers.gnss.sources import GnssSource
-from drivers.records import Fix
+from treetraits.drivers.gnss.epochs import NS_PER_DAY, EpochAssembler
+from treetraits.drivers.gnss.sentences import GGA, HDT, THS, Sentence, decode, sentence_type
+from treetraits.drivers.gnss.sources import GnssSource
+from treetraits.drivers.records import Fix
 from treetraits.errors import ParseError
 
 

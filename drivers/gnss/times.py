@@ -1,4 +1,4 @@
-"""The UTC of live NMEA sentences, as a recording's `publish_time` (ARCHITECTURE.md,
+"""The UTC of live NMEA sentences, as a recording's `publish_time` (docs/architecture.md,
 recording format v1: "for GNSS the epoch's UTC", full ns since the Unix epoch).
 
 A sentence is stamped as it is received, so nothing later in its burst can be waited for:
@@ -24,7 +24,7 @@ import datetime as dt
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from drivers.gnss.sentences import parse_sentence, split_frame, time_of_day
+from treetraits.drivers.gnss.sentences import parse_sentence, split_frame, time_of_day
 from treetraits.errors import ParseError
 
 NS_PER_DAY = 86_400 * 1_000_000_000

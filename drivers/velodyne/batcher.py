@@ -17,9 +17,14 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from drivers.records import Scan
-from drivers.velodyne import models as m
-from drivers.velodyne.packet import decode_packets, resolve_hour, valid_packets, view_packets
+from treetraits.drivers.records import Scan
+from treetraits.drivers.velodyne import models as m
+from treetraits.drivers.velodyne.packet import (
+    decode_packets,
+    resolve_hour,
+    valid_packets,
+    view_packets,
+)
 
 _HOUR_US = 3_600_000_000
 _FLAG_LO = b"\xff" * m.BLOCKS_PER_PACKET

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.velodyne import models as m
-from drivers.velodyne.packet import PACKET_DTYPE
+from treetraits.drivers.velodyne import models as m
+from treetraits.drivers.velodyne.packet import PACKET_DTYPE
 
 
 def encode_packets(

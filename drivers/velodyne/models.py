@@ -47,7 +47,7 @@ PRODUCT_NAMES = {
     0xA1: "VLS-128",
 }
 
-# Point `return_type` values (ARCHITECTURE.md): 0 strongest, 1 last.
+# Point `return_type` values (docs/architecture.md): 0 strongest, 1 last.
 RETURN_TYPE_STRONGEST = 0
 RETURN_TYPE_LAST = 1
 

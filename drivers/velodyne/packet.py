@@ -13,8 +13,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from drivers.records import POINT_DTYPE
-from drivers.velodyne import models as m
+from treetraits.drivers.records import POINT_DTYPE
+from treetraits.drivers.velodyne import models as m
 
 BLOCK_DTYPE = np.dtype(
     [

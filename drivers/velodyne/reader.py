@@ -8,10 +8,10 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from drivers.records import Scan
-from drivers.velodyne.batcher import ScanBatcher
-from drivers.velodyne.sources import LidarPacket, PacketSource
-from drivers.velodyne.telemetry import Telemetry, decode_telemetry
+from treetraits.drivers.records import Scan
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.drivers.velodyne.sources import LidarPacket, PacketSource
+from treetraits.drivers.velodyne.telemetry import Telemetry, decode_telemetry
 from treetraits.errors import ParseError
 
 

@@ -25,7 +25,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import dpkt
 
-from drivers.velodyne.models import DATA_PACKET_SIZE, HOUR_NS, POSITION_PACKET_SIZE
+from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE, HOUR_NS, POSITION_PACKET_SIZE
 from treetraits.errors import SourceError
 
 DATA_PORT = 2368
@@ -246,7 +246,7 @@ class McapSource:
     is_live = False
 
     def __init__(self, path: str | Path):
-        from drivers import recording
+        from treetraits.drivers import recording
 
         self.uri = str(path)
         self.stats = SourceStats()

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.records import Scan
-from drivers.velodyne.telemetry import Telemetry
+from treetraits.drivers.records import Scan
+from treetraits.drivers.velodyne.telemetry import Telemetry
 
 
 @dataclass

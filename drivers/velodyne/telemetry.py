@@ -10,7 +10,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from drivers.velodyne.models import POSITION_PACKET_SIZE
+from treetraits.drivers.velodyne.models import POSITION_PACKET_SIZE
 from treetraits.errors import ParseError
 
 PPS_STATUS_NAMES = {0: "absent", 1: "synchronizing", 2: "locked", 3: "error"}

@@ -10,8 +10,8 @@
 See docs/jackal.md.
 """
 
-from firmware_bridge.jackal.messages import Drive
-from firmware_bridge.jackal.records import (
+from treetraits.firmware_bridge.jackal.messages import Drive
+from treetraits.firmware_bridge.jackal.records import (
     DriveUnit,
     JackalFeedback,
     JackalImu,
@@ -22,10 +22,10 @@ from firmware_bridge.jackal.records import (
     McuLog,
     SerialChunk,
 )
-from firmware_bridge.jackal.rosserial import Frame, FrameReader, TopicInfo
-from firmware_bridge.jackal.serial_link import LinkLostError, SerialLink
-from firmware_bridge.jackal.session import JackalProtocol, JackalSession, decode_stream
-from firmware_bridge.jackal.teleop import TeleopConfig, TeleopRelay, teleop_drive
+from treetraits.firmware_bridge.jackal.rosserial import Frame, FrameReader, TopicInfo
+from treetraits.firmware_bridge.jackal.serial_link import LinkLostError, SerialLink
+from treetraits.firmware_bridge.jackal.session import JackalProtocol, JackalSession, decode_stream
+from treetraits.firmware_bridge.jackal.teleop import TeleopConfig, TeleopRelay, teleop_drive
 
 __all__ = [
     "Drive",

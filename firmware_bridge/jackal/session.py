@@ -31,10 +31,11 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 
-from drivers.records import WheelSample
-from firmware_bridge.jackal import messages as m
-from firmware_bridge.jackal import rosserial as rs
-from firmware_bridge.jackal.records import (
+from treetraits.drivers.records import WheelSample
+from treetraits.errors import ParseError, SourceError
+from treetraits.firmware_bridge.jackal import messages as m
+from treetraits.firmware_bridge.jackal import rosserial as rs
+from treetraits.firmware_bridge.jackal.records import (
     DriveUnit,
     JackalFeedback,
     JackalImu,
@@ -45,14 +46,13 @@ from firmware_bridge.jackal.records import (
     McuLog,
     SerialChunk,
 )
-from firmware_bridge.jackal.serial_link import (
+from treetraits.firmware_bridge.jackal.serial_link import (
     DEFAULT_BAUDRATE,
     DEFAULT_PORT,
     LinkLostError,
     SerialLink,
 )
-from firmware_bridge.jackal.teleop import TeleopConfig, TeleopRelay
-from treetraits.errors import ParseError, SourceError
+from treetraits.firmware_bridge.jackal.teleop import TeleopConfig, TeleopRelay
 
 log = logging.getLogger(__name__)
 

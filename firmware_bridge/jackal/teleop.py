@@ -32,8 +32,8 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
-from firmware_bridge.jackal.messages import MODE_VELOCITY, STOP, Drive
 from treetraits.errors import ConfigError
+from treetraits.firmware_bridge.jackal.messages import MODE_VELOCITY, STOP, Drive
 
 log = logging.getLogger(__name__)
 

@@ -2,12 +2,12 @@
 parent), a push decoder, and the serial link. The reference firmware is in
 `firmware_bridge/firmware/`.
 
-    from firmware_bridge.retrofit import open_bridge
+    from treetraits.firmware_bridge.retrofit import open_bridge
     for item in open_bridge("/dev/serial/by-id/usb-Raspberry_Pi_Pico_E660...-if00"):
         ...  # WheelSample (unit "ticks"), Heartbeat, ConfigEcho, LinkEvent
 """
 
-from firmware_bridge.retrofit.protocol import (
+from treetraits.firmware_bridge.retrofit.protocol import (
     VERSION,
     ConfigEcho,
     Fault,
@@ -16,8 +16,13 @@ from firmware_bridge.retrofit.protocol import (
     MessageType,
     Ticks,
 )
-from firmware_bridge.retrofit.reader import BridgeDecoder, BridgeReader, ReaderStats, TickOdometer
-from firmware_bridge.retrofit.serial_link import (
+from treetraits.firmware_bridge.retrofit.reader import (
+    BridgeDecoder,
+    BridgeReader,
+    ReaderStats,
+    TickOdometer,
+)
+from treetraits.firmware_bridge.retrofit.serial_link import (
     BridgeChunk,
     LinkEvent,
     RetrofitSource,

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from drivers.records import WheelSample
-from firmware_bridge.retrofit.protocol import (
+from treetraits.drivers.records import WheelSample
+from treetraits.firmware_bridge.retrofit.protocol import (
     MAX_ENCODED,
     ConfigEcho,
     FrameError,

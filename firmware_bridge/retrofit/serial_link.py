@@ -24,10 +24,10 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 
-from drivers.records import WheelSample
-from firmware_bridge.retrofit.protocol import ConfigEcho, Heartbeat
-from firmware_bridge.retrofit.reader import BridgeDecoder
+from treetraits.drivers.records import WheelSample
 from treetraits.errors import SourceError
+from treetraits.firmware_bridge.retrofit.protocol import ConfigEcho, Heartbeat
+from treetraits.firmware_bridge.retrofit.reader import BridgeDecoder
 
 DEFAULT_BAUDRATE = 115200  # a USB CDC board ignores it; never 1200 (resets a Pico to BOOTSEL)
 DEFAULT_POLL_S = 0.1  # longest a read blocks before it looks at close() and deadlines

@@ -3,7 +3,7 @@
 `Localizer` is the entry point; the modules beside it are the pure pieces it is made of.
 """
 
-from pipeline.localization.config import LocalizationConfig, WheelGeometry
-from pipeline.localization.localizer import FixVerdict, Localizer
+from treetraits.pipeline.localization.config import LocalizationConfig, WheelGeometry
+from treetraits.pipeline.localization.localizer import FixVerdict, Localizer
 
 __all__ = ["FixVerdict", "LocalizationConfig", "Localizer", "WheelGeometry"]

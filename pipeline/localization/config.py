@@ -5,12 +5,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
-
-from drivers.calibration import WheelGeometry
+from treetraits.drivers.calibration import WheelGeometry
+from treetraits.errors import ConfigError
 
 __all__ = ["DEFAULT_SIGMA_PER_HDOP", "LocalizationConfig", "WheelGeometry"]
-
 
 # Horizontal 1-sigma per unit of HDOP when a receiver sends no GST, by GGA quality.
 # Typical receiver accuracies: autonomous ~2.5 m, SBAS/DGPS ~0.7 m, RTK fixed ~2 cm,
@@ -55,7 +53,35 @@ class LocalizationConfig:
     initial_yaw_rad: float = 0.0
     initial_yaw_sigma_rad: float = math.pi
 
-    # Antenna lever arm: T_base_gnss from the calibration (4x4, row-major).
-    T_base_gnss: np.ndarray = field(default_factory=lambda: np.eye(4))
     # Pose history kept for `pose_at`, seconds.
     history_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        positive = (
+            "odom_sigma_per_sqrt_m",
+            "odom_yaw_sigma_per_sqrt_rad",
+            "odom_yaw_sigma_per_sqrt_m",
+            "min_fix_sigma_m",
+            "fix_gate_chi2",
+            "heading_sigma_rad",
+            "cog_velocity_sigma_mps",
+            "known_yaw_sigma_rad",
+            "initial_yaw_sigma_rad",
+            "history_s",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"localization.{name} must be a finite number > 0, got {value}")
+        for name in ("cog_min_speed_mps", "cog_max_yaw_rate"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"localization.{name} must be >= 0")
+        if self.max_rejected_in_a_row < 1:
+            raise ConfigError("localization.max_rejected_in_a_row must be >= 1")
+        for quality, sigma in self.sigma_per_hdop.items():
+            if not (isinstance(quality, int) and 0 <= quality <= 9):
+                raise ConfigError(
+                    f"localization.sigma_per_hdop: keys are GGA qualities 0-9, got {quality!r}"
+                )
+            if not (math.isfinite(sigma) and sigma > 0):
+                raise ConfigError(f"localization.sigma_per_hdop.{quality} must be > 0")

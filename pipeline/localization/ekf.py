@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from pipeline.localization.utm import wrap_angle
+from treetraits.pipeline.localization.utm import wrap_angle
 
 
 @dataclass(frozen=True, slots=True)

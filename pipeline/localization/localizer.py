@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.records import Fix, Pose, WheelSample
-from pipeline.localization.config import LocalizationConfig, WheelGeometry
-from pipeline.localization.ekf import PoseFilter
-from pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw, wrap_angle
+from treetraits.drivers.records import Fix, Pose, WheelSample
+from treetraits.pipeline.localization.config import LocalizationConfig, WheelGeometry
+from treetraits.pipeline.localization.ekf import PoseFilter
+from treetraits.pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw, wrap_angle
 
 # A wheel step implying more than this speed is a counter reset, not motion.
 _MAX_WHEEL_SPEED_MPS = 10.0
@@ -70,8 +70,13 @@ class _History:
 
 class Localizer:
     def __init__(
-        self, config: LocalizationConfig | None = None, wheels: WheelGeometry | None = None
+        self,
+        config: LocalizationConfig | None = None,
+        wheels: WheelGeometry | None = None,
+        T_base_gnss: np.ndarray | None = None,
     ):
+        """`wheels` and `T_base_gnss` (the antenna lever arm, 4x4) are calibration, not
+        settings: they come from the robot's calibration file."""
         self.config = config or LocalizationConfig()
         self.wheels = wheels or WheelGeometry()
         self.stats = LocalizerStats()
@@ -85,7 +90,8 @@ class Localizer:
         self._t = 0
         self._odom_history = _History()
         self._utm_history = _History()
-        lever = np.asarray(self.config.T_base_gnss, dtype=float).reshape(4, 4)[:3, 3]
+        lever_pose = np.eye(4) if T_base_gnss is None else T_base_gnss
+        lever = np.asarray(lever_pose, dtype=float).reshape(4, 4)[:3, 3]
         self._lever_arm = lever[:2]
 
     # ---- inputs ---------------------------------------------------------------------------

@@ -5,16 +5,16 @@ without ROS/PCL, with the shipped parameters and a declared single-scan retune
 its `TrackedTree` records.
 """
 
-from pipeline.rph.config import (
+from treetraits.pipeline.rph.config import (
     AssociationConfig,
     DetectorConfig,
     ElevationMapConfig,
     RphConfig,
     rph_config,
 )
-from pipeline.rph.detector import Cluster, Detection, detect
-from pipeline.rph.elevation_map import ElevationMap, build_elevation_map, remove_ground
-from pipeline.rph.mapper import RphClusterResult, RphMapper, RphScanResult
+from treetraits.pipeline.rph.detector import Cluster, Detection, detect
+from treetraits.pipeline.rph.elevation_map import ElevationMap, build_elevation_map, remove_ground
+from treetraits.pipeline.rph.mapper import RphClusterResult, RphMapper, RphScanResult
 
 __all__ = [
     "AssociationConfig",

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.rph.clustering import euclidean_clusters
-from pipeline.rph.config import DetectorConfig, RphConfig
-from pipeline.rph.elevation_map import ElevationMap, remove_ground
+from treetraits.pipeline.rph.clustering import euclidean_clusters
+from treetraits.pipeline.rph.config import DetectorConfig, RphConfig
+from treetraits.pipeline.rph.elevation_map import ElevationMap, remove_ground
 
 # Counters of one detection run, every cluster in exactly one of the last five.
 COUNTERS = (

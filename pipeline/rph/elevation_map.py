@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.rph.clustering import component_labels
-from pipeline.rph.config import ElevationMapConfig
+from treetraits.pipeline.rph.clustering import component_labels
+from treetraits.pipeline.rph.config import ElevationMapConfig
 
 
 @dataclass(frozen=True)

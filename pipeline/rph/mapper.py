@@ -19,12 +19,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.calibration import Calibration
-from drivers.records import Frame, Pose, Scan
-from pipeline.mapper import TrackedTree
-from pipeline.projection import scan_mid_time
-from pipeline.rph.config import RphConfig
-from pipeline.rph.detector import COUNTERS, Cluster, detect
+from treetraits.drivers.calibration import Calibration
+from treetraits.drivers.records import Frame, Pose, Scan
+from treetraits.pipeline.mapper import TrackedTree
+from treetraits.pipeline.projection import scan_mid_time
+from treetraits.pipeline.rph.config import RphConfig
+from treetraits.pipeline.rph.detector import COUNTERS, Cluster, detect
 
 # The frame trees are kept in when scans come without a pose: the robot is taken as
 # standing still, its base_footprint as the world.

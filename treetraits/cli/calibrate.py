@@ -14,8 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.calibration import load_calibration
-from pipeline.ndvi import (
+from treetraits.drivers.calibration import load_calibration
+from treetraits.errors import CalibrationError, ConfigError, SourceError
+from treetraits.pipeline.ndvi import (
     MAPIR_TARGET_V2,
     BandFit,
     Box,
@@ -23,7 +24,6 @@ from pipeline.ndvi import (
     fit_reflectance,
     sample_panels,
 )
-from treetraits.errors import CalibrationError, ConfigError, SourceError
 
 DEFAULT_CHANNELS = {"red": 2, "green": 1, "nir": 0}
 REQUIRED_BANDS = ("red", "nir")  # green is optional in calibration v1

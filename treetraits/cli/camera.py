@@ -107,7 +107,7 @@ def _add_settings_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _settings(args: argparse.Namespace):
-    from drivers.camera import CameraSettings
+    from treetraits.drivers.camera import CameraSettings
 
     return CameraSettings(
         width=args.width,
@@ -137,7 +137,7 @@ def _start_ns(text: str) -> int:
 
 
 def _open(args: argparse.Namespace):
-    from drivers.camera import open_camera_source
+    from treetraits.drivers.camera import open_camera_source
 
     return open_camera_source(
         args.source, _settings(args), video_start_ns=_start_ns(args.video_start)
@@ -156,7 +156,7 @@ def run_info(args: argparse.Namespace) -> int:
 
 def _measure(frames) -> dict:
     """Rate, gaps, latency and size from a list of frames (no decoding)."""
-    from drivers.camera.frames import interval_summary
+    from treetraits.drivers.camera.frames import interval_summary
 
     times = [f.t_capture for f in frames]
     facts: dict = {"frames": len(frames), **interval_summary(times)}
@@ -179,7 +179,7 @@ def _first_size(source, frames) -> dict:
 
 
 def _live_facts(source, args: argparse.Namespace) -> dict:
-    from drivers.camera import v4l2
+    from treetraits.drivers.camera import v4l2
 
     facts: dict = {"source": source.uri, "kind": "live", "device": source.device}
     try:
@@ -286,7 +286,7 @@ def _frames(source, deadline: float | None):
 
 
 def run_grab(args: argparse.Namespace) -> int:
-    from drivers.camera import FolderWriter
+    from treetraits.drivers.camera import FolderWriter
 
     if args.every < 1:
         raise ConfigError(f"--every must be at least 1, got {args.every}")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.service.config import dump_config, load_config
 from treetraits.cli.run import add_config_option, read_config
+from treetraits.service.config import dump_config, load_config
 
 
 def register(commands: argparse._SubParsersAction) -> None:

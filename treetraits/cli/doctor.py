@@ -8,7 +8,7 @@ import shutil
 import textwrap
 from pathlib import Path
 
-from pipeline.service.doctor import Status, run_checks
+from treetraits.service.doctor import Status, run_checks
 
 
 def register(commands: argparse._SubParsersAction) -> None:

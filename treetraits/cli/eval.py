@@ -41,6 +41,13 @@ def register(commands: argparse._SubParsersAction) -> None:
     ev.add_argument(
         "--jobs", type=int, help=f"worker processes (default: the CPUs, {os.cpu_count()})"
     )
+    ev.add_argument(
+        "--config",
+        type=Path,
+        help="config file (TOML, as `treetraits run` takes): its [detection], [tracking], "
+        "[traits], [localization] and [output] gates are used by every replay (default: "
+        "the built-in defaults); each method still sets pipeline.method and traits.method",
+    )
     ev.add_argument("--list", action="store_true", help="list the cases and exit")
     ev.set_defaults(run=run)
 
@@ -49,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     from treetraits.evaluation.cases import CASES, select_cases
     from treetraits.evaluation.report import write_report
     from treetraits.evaluation.run import parse_methods, run_evaluation
+    from treetraits.service.config import load_config
 
     if args.list:
         for case in CASES:
@@ -65,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
     cases = select_cases(args.cases)
     methods = parse_methods(args.methods)
-    evaluation = run_evaluation(cases, range(seeds), methods, args.out, args.jobs)
+    config = load_config(args.config)
+    evaluation = run_evaluation(cases, range(seeds), methods, args.out, args.jobs, config=config)
     report = write_report(evaluation, args.out)
     if args.json:
         print(json.dumps(report.summary, indent=1))

@@ -9,12 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import recording
-from drivers.calibration import Calibration, load_calibration
-from drivers.records import Frame, Scan
-from drivers.velodyne.reader import LidarReader
-from drivers.velodyne.sources import open_source
-from pipeline.fusion import (
+from treetraits.drivers import recording
+from treetraits.drivers.calibration import Calibration, load_calibration
+from treetraits.drivers.records import Frame, Scan
+from treetraits.drivers.velodyne.reader import LidarReader
+from treetraits.drivers.velodyne.sources import open_source
+from treetraits.errors import CalibrationError, ConfigError, SourceError
+from treetraits.pipeline.fusion import (
     FusionConfig,
     colorize_mask,
     colorize_ndvi,
@@ -22,9 +23,8 @@ from pipeline.fusion import (
     fuse_scan,
     height_colours,
 )
-from pipeline.ndvi import vegetation_mask
-from pipeline.projection import OcclusionRule, PointStatus, nearest_frame, scan_mid_time
-from treetraits.errors import CalibrationError, ConfigError, SourceError
+from treetraits.pipeline.ndvi import vegetation_mask
+from treetraits.pipeline.projection import OcclusionRule, PointStatus, nearest_frame, scan_mid_time
 
 
 def register(commands: argparse._SubParsersAction) -> None:

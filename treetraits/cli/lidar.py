@@ -11,12 +11,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from drivers.records import Scan
-from drivers.velodyne.pcd import write_pcd
-from drivers.velodyne.reader import LidarReader
-from drivers.velodyne.sources import DATA_PORT, TELEMETRY_PORT, UdpSource, open_source
-from drivers.velodyne.summary import LidarSummary
-from drivers.velodyne.telemetry import Telemetry
+from treetraits.drivers.records import Scan
+from treetraits.drivers.velodyne.pcd import write_pcd
+from treetraits.drivers.velodyne.reader import LidarReader
+from treetraits.drivers.velodyne.sources import DATA_PORT, TELEMETRY_PORT, UdpSource, open_source
+from treetraits.drivers.velodyne.summary import LidarSummary
+from treetraits.drivers.velodyne.telemetry import Telemetry
 from treetraits.errors import ConfigError
 
 _INPUT_HELP = (

@@ -6,8 +6,8 @@ import argparse
 import json
 import sys
 
-from drivers.gnss.sources import DEFAULT_BAUD, open_gnss_source
-from drivers.gnss.summary import summarise
+from treetraits.drivers.gnss.sources import DEFAULT_BAUD, open_gnss_source
+from treetraits.drivers.gnss.summary import summarise
 from treetraits.errors import ConfigError
 
 _INPUT_HELP = (

@@ -7,8 +7,8 @@ import ipaddress
 import time
 from pathlib import Path
 
-from sim.player import RecordingPlayer, write_camera_video
 from treetraits.errors import ConfigError
+from treetraits.sim.player import RecordingPlayer, write_camera_video
 
 
 def _host_port(text: str) -> tuple[str, int]:

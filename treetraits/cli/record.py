@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.service.logs import setup_logging
 from treetraits.cli.run import add_config_option, read_config
+from treetraits.service.logs import setup_logging
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -27,7 +27,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
-    from pipeline.service.runtime import Service
+    from treetraits.service.runtime import Service
 
     cfg = read_config(args.config)
     setup_logging(cfg.service.log_level)

@@ -9,7 +9,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from pipeline.replay import METHODS, TRAITS, ReplayOptions, format_table, run_replay
+from treetraits.pipeline.config import TRAIT_METHODS
+from treetraits.service.config import METHODS, load_config, with_method
+from treetraits.service.replay import ReplayOptions, format_table, run_replay
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -35,26 +37,33 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     replay.add_argument("--nmea", type=Path, help="an NMEA log to go with a LiDAR capture")
     replay.add_argument(
+        "--config",
+        type=Path,
+        help="config file (TOML, as `treetraits run` takes): the pipeline's settings "
+        "([pipeline] method, [detection], [tracking], [traits], [localization], the [output] "
+        "gates and export_every_s); default: the built-in defaults. Its calibration and field "
+        "map are used when neither the options nor the recording give one",
+    )
+    replay.add_argument(
         "--method",
         choices=METHODS,
-        default="paper",
-        help="paper (default), rph (the RPH baseline as shipped) or rph-vlp16 "
-        "(RPH retuned for single VLP-16 scans)",
+        help="paper (the config's default), rph (the RPH baseline as shipped) or rph-vlp16 "
+        "(RPH retuned for single VLP-16 scans); overrides pipeline.method",
     )
     replay.add_argument(
         "--traits",
-        choices=TRAITS,
-        default="paper",
-        help="paper (keep the maximum, default) or robust (accumulated)",
+        choices=TRAIT_METHODS,
+        help="paper (keep the maximum, the default) or robust (accumulated); overrides "
+        "traits.method",
     )
     replay.add_argument("--json", action="store_true", help="print the summary as JSON")
     replay.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    config = with_method(load_config(args.config), args.method, args.traits)
     options = ReplayOptions(
-        method=args.method,
-        traits=args.traits,
+        config=config,
         field_map=args.field_map,
         calibration=args.calibration,
         nmea=args.nmea,

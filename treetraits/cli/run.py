@@ -6,13 +6,13 @@ import argparse
 import logging
 from pathlib import Path
 
-from pipeline.service.config import (
+from treetraits.service.config import (
     DEFAULT_CONFIG_PATH,
     ServiceConfig,
     load_config,
     with_overrides,
 )
-from pipeline.service.logs import setup_logging
+from treetraits.service.logs import setup_logging
 
 log = logging.getLogger("treetraits.service")
 
@@ -55,7 +55,7 @@ def read_config(path: Path | None) -> ServiceConfig:
 
 
 def run_service(args: argparse.Namespace) -> int:
-    from pipeline.service.runtime import Service
+    from treetraits.service.runtime import Service
 
     cfg = read_config(args.config)
     if args.record:

@@ -8,12 +8,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from drivers.calibration import load_calibration
-from sim.gnss import GnssSettings
-from sim.orchard import WindSettings
-from sim.paths import PATHS
-from sim.run import SurveySettings, simulate_survey
+from treetraits.drivers.calibration import load_calibration
 from treetraits.errors import ConfigError
+from treetraits.sim.gnss import GnssSettings
+from treetraits.sim.orchard import WindSettings
+from treetraits.sim.paths import PATHS
+from treetraits.sim.run import SurveySettings, simulate_survey
 
 QUALITIES = {"rtk": 4, "float": 5, "dgps": 2, "autonomous": 1}
 

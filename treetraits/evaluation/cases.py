@@ -3,8 +3,7 @@ the numbers the paper published for it.
 
 Source of the published numbers: Chatziparaschis et al., "On-the-Go Tree Detection and
 Geometric Traits Estimation with Ground Mobile Robots in Fruit Tree Groves", Table I
-("Field Experiment Results"; /work/shared/seed/paper.tex, restated in
-/work/shared/PAPER.md): MAPE (%) of width and height per tree row, the paper's method
+("Field Experiment Results"): MAPE (%) of width and height per tree row, the paper's method
 ("ours") and the RPH baseline, 5 runs per simulated case.
 """
 
@@ -13,8 +12,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from sim.orchard import WindSettings
-from sim.run import SurveySettings
+from treetraits.sim.orchard import WindSettings
+from treetraits.sim.run import SurveySettings
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,8 @@ import numpy as np
 
 from treetraits.errors import SourceError
 
-DEFAULT_GATE_M = 1.5  # the replay's own field-map gate (pipeline.georef.DEFAULT_GATE_M)
+# A detection is scored against the nearest true tree within the replay's own field-map gate.
+from treetraits.pipeline.georef import DEFAULT_GATE_M
 
 
 @dataclass(frozen=True)

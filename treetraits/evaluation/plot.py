@@ -13,10 +13,10 @@ matplotlib.use("Agg")  # files only, no screen
 import matplotlib.pyplot as plt
 from matplotlib.patches import Circle
 
-from sim.paths import drive, waypoints
-from sim.run import ORIGIN_UTM
 from treetraits.evaluation.cases import Case
 from treetraits.evaluation.metrics import Detection, TruthTree
+from treetraits.sim.paths import drive, waypoints
+from treetraits.sim.run import ORIGIN_UTM
 
 MARKERS = {
     "paper": ("x", "tab:red"),

@@ -23,12 +23,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-import sim
-from sim.run import SurveySettings
+import treetraits.sim as sim_package
 from treetraits import __version__
 from treetraits.errors import ConfigError
 from treetraits.evaluation.cases import Case
 from treetraits.evaluation.metrics import Detection, detections_from_trees
+from treetraits.service.config import ServiceConfig, with_method
+from treetraits.sim.run import SurveySettings
 
 
 @dataclass(frozen=True)
@@ -119,7 +120,7 @@ def cache_key(settings: SurveySettings) -> str:
     digest = hashlib.sha256()
     digest.update(json.dumps(dataclasses.asdict(settings), sort_keys=True, default=str).encode())
     digest.update(__version__.encode())
-    sim_dir = Path(sim.__file__).resolve().parent
+    sim_dir = Path(sim_package.__file__).resolve().parent
     files = [sim_dir / name for name in SIMULATOR_FILES] + sorted(sim_dir.glob("data/*"))
     for path in files:
         digest.update(path.name.encode())
@@ -133,7 +134,7 @@ def recording_path(cases_dir: Path, case: Case, seed: int) -> Path:
 
 def simulate(case: Case, seed: int, cases_dir: Path) -> Simulated:
     """The recording of (case, seed), simulated unless the cache holds it."""
-    from sim.run import simulate_survey
+    from treetraits.sim.run import simulate_survey
 
     path = recording_path(cases_dir, case, seed)
     marker = path.with_suffix(".sim.json")
@@ -160,15 +161,15 @@ def simulate(case: Case, seed: int, cases_dir: Path) -> Simulated:
     return Simulated(case.name, seed, path, truth, result.duration_s, elapsed, False)
 
 
-def replay(sim: Simulated, method: str, runs_dir: Path) -> Replayed:
-    from pipeline.replay import ReplayOptions, run_replay
+def replay(sim: Simulated, method: str, runs_dir: Path, config: ServiceConfig) -> Replayed:
+    """Replay one recording with `method` over `config` (the eval's --config)."""
+    from treetraits.service.replay import ReplayOptions, run_replay
 
     m = METHODS[method]
     out_dir = runs_dir / sim.case / f"seed{sim.seed}" / method
     start = time.perf_counter()
-    report = run_replay(
-        sim.recording, out_dir, ReplayOptions(method=m.replay_method, traits=m.traits)
-    )
+    config = with_method(config, m.replay_method, m.traits)
+    report = run_replay(sim.recording, out_dir, ReplayOptions(config=config))
     elapsed = time.perf_counter() - start
     return Replayed(
         sim.case,
@@ -194,9 +195,12 @@ def run_evaluation(
     out: Path,
     jobs: int | None = None,
     progress: bool = True,
+    config: ServiceConfig | None = None,
 ) -> Evaluation:
-    """Simulate (or reuse) and replay everything; the results in memory (no files but the
-    recordings and the replays' own outputs)."""
+    """Simulate (or reuse) and replay everything with `config`'s pipeline settings (None:
+    the defaults); the results in memory (no files but the recordings and the replays'
+    own outputs)."""
+    config = config or ServiceConfig()
     if not cases:
         raise ConfigError("no case to evaluate")
     jobs = max(1, jobs or os.cpu_count() or 1)
@@ -222,7 +226,7 @@ def run_evaluation(
             while len(pending) < jobs and (replays_todo or sims_todo):
                 if replays_todo:
                     sim, method = replays_todo.pop(0)
-                    pending[pool.submit(replay, sim, method, runs_dir)] = "replay"
+                    pending[pool.submit(replay, sim, method, runs_dir, config)] = "replay"
                 else:
                     case, seed = sims_todo.pop(0)
                     pending[pool.submit(simulate, case, seed, cases_dir)] = "sim"

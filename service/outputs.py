@@ -1,5 +1,5 @@
 """A run's outputs, shared by `treetraits replay` and the service: the store committed per
-scan, and `trees.geojson` / `trees.csv` rewritten atomically (ARCHITECTURE.md, "Outputs").
+scan, and `trees.geojson` / `trees.csv` rewritten atomically (docs/architecture.md, "Outputs").
 
 `RunWriter` owns the store and knows how to turn the mapper's trees into georeferenced
 `Tree`s; when to export is the caller's choice (recorded time in a replay, wall time in
@@ -13,17 +13,18 @@ import sqlite3
 from collections.abc import Sequence
 from pathlib import Path
 
-from drivers.records import Tree
-from pipeline.fieldmap import FieldTree
-from pipeline.georef import (
+from treetraits.drivers.records import Tree
+from treetraits.errors import TreetraitsError
+from treetraits.pipeline.fieldmap import FieldTree
+from treetraits.pipeline.georef import (
     FieldMapIndex,
     georeference,
     write_trees_csv,
     write_trees_geojson,
 )
-from pipeline.store import Observation, TraitStore
-from pipeline.survey import ScanOutcome, SurveyProcessor
-from treetraits.errors import TreetraitsError
+from treetraits.service.config import OutputConfig
+from treetraits.service.store import Observation, TraitStore
+from treetraits.service.survey import ScanOutcome, SurveyProcessor
 
 STORE_NAME = "traits.sqlite"
 CSV_NAME = "trees.csv"
@@ -43,16 +44,17 @@ class RunWriter:
         out_dir: Path,
         processor: SurveyProcessor,
         field_map: Sequence[FieldTree] = (),
+        gates: OutputConfig | None = None,
         *,
-        min_observations: int = 3,
-        match_gate_m: float = 1.5,
         facts: dict | None = None,
     ):
+        """`gates`: the output section's `min_observations` and `match_gate_m`."""
+        gates = gates or OutputConfig()
         self.out_dir = Path(out_dir)
         self.processor = processor
         self.field_map = list(field_map)
-        self.min_observations = min_observations
-        self.match_gate_m = match_gate_m
+        self.min_observations = gates.min_observations
+        self.match_gate_m = gates.match_gate_m
         self.store_path = self.out_dir / STORE_NAME
         self.scans = 0  # scans committed
         self.exports = 0

@@ -34,16 +34,18 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
-from drivers import recording as rec
-from drivers.calibration import Calibration, load_calibration
-from drivers.camera.sources import is_live_uri
-from drivers.gnss.times import NmeaClock
-from pipeline.fieldmap import load_field_map
-from pipeline.service.config import ServiceConfig, dump_config
-from pipeline.service.health import assess, status_line
-from pipeline.service.notify import Notifier
-from pipeline.service.outputs import OutputError, RunWriter
-from pipeline.service.workers import (
+from treetraits import __version__
+from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import Calibration, load_calibration
+from treetraits.drivers.camera.sources import is_live_uri
+from treetraits.drivers.gnss.times import NmeaClock
+from treetraits.errors import ConfigError, TreetraitsError
+from treetraits.pipeline.fieldmap import load_field_map
+from treetraits.service.config import ServiceConfig, dump_config
+from treetraits.service.health import assess, status_line
+from treetraits.service.notify import Notifier
+from treetraits.service.outputs import OutputError, RunWriter
+from treetraits.service.workers import (
     BoundedQueue,
     BridgeWorker,
     CameraWorker,
@@ -55,8 +57,6 @@ from pipeline.service.workers import (
     is_video_file,
     lidar_publish_time,
 )
-from treetraits import __version__
-from treetraits.errors import ConfigError, TreetraitsError
 
 log = logging.getLogger("treetraits.service")
 
@@ -187,7 +187,7 @@ class Service:
         return BoundedQueue(name, capacity, self._wake)
 
     def _open_recorder(self, calibration: Calibration, field_map: bytes | None) -> None:
-        from drivers.rotation import RotatingRecorder
+        from treetraits.drivers.rotation import RotatingRecorder
 
         path = self.record_path
         if path is None:
@@ -213,12 +213,9 @@ class Service:
         field_map, field_map_bytes = self._field_map()
         self.workers = self._make_workers()
         if self.process:
-            from pipeline.replay import ReplayOptions, make_mapper
-            from pipeline.survey import SurveyProcessor
+            from treetraits.service.replay import make_processor
 
-            p = self.cfg.pipeline
-            mapper = make_mapper(ReplayOptions(method=p.method, traits=p.traits), calibration)
-            self.processor = SurveyProcessor(mapper, calibration, self.cfg.lidar.model)
+            self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
             try:
                 self.run_dir = new_run_dir(Path(self.cfg.output.dir), self._stamp)
             except OSError as exc:
@@ -230,13 +227,12 @@ class Service:
                 self.run_dir,
                 self.processor,
                 field_map,
-                min_observations=p.min_observations,
-                match_gate_m=p.match_gate_m,
+                self.cfg.output,
                 facts={
                     "software": f"treetraits {__version__}",
                     "input": "live",
-                    "method": p.method,
-                    "traits": p.traits,
+                    "method": self.cfg.pipeline.method,
+                    "traits": self.cfg.traits.method,
                     "started": self._stamp,
                     "config": dump_config(self.cfg, comments=False),
                     "calibration": calibration.to_json(),

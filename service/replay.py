@@ -10,36 +10,30 @@ input and options give the same outputs.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from drivers import recording as rec
-from drivers.calibration import Calibration, load_calibration
-from drivers.records import Tree
-from drivers.velodyne.sources import open_source
-from pipeline.fieldmap import load_field_map, parse_geojson
-from pipeline.service.outputs import STORE_NAME, RunWriter
-from pipeline.survey import SurveyProcessor
 from treetraits import __version__
-from treetraits.errors import ConfigError, SourceError
-
-# rph: the baseline as shipped; rph-vlp16: declared retuned for single VLP-16 scans.
-METHODS = ("paper", "rph", "rph-vlp16")
-TRAITS = ("paper", "robust")
+from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import Calibration, load_calibration
+from treetraits.drivers.records import Tree
+from treetraits.drivers.velodyne.sources import open_source
+from treetraits.errors import SourceError
+from treetraits.pipeline.fieldmap import load_field_map, parse_geojson
+from treetraits.service.config import ServiceConfig
+from treetraits.service.outputs import STORE_NAME, RunWriter
+from treetraits.service.survey import SurveyProcessor
 
 
 @dataclass(frozen=True)
 class ReplayOptions:
-    method: str = "paper"
-    traits: str = "paper"
+    """What to replay with. Calibration and field map: these files when given, else the
+    recording's own, else the config's `pipeline.calibration` / `pipeline.field_map`."""
+
+    config: ServiceConfig = field(default_factory=ServiceConfig)
     field_map: Path | None = None
     calibration: Path | None = None
     nmea: Path | None = None  # with a pcap input
-    export_every_s: float = 5.0
-    match_gate_m: float = 1.5
-    # A tree seen in fewer scans is not reported (a stray cluster at the edge of view,
-    # seen once): at 10 Hz a real tree in range is seen in dozens.
-    min_observations: int = 3
 
 
 @dataclass(frozen=True)
@@ -89,7 +83,7 @@ def open_input(path: Path, nmea: Path | None = None) -> Input:
 def _nmea_lines(path: Path):
     """An NMEA log has no receive times: sentences keep their order and are stamped from the
     LiDAR stream's clock by the merge (the log is taken to cover the same drive)."""
-    from drivers.gnss.sources import open_gnss_source
+    from treetraits.drivers.gnss.sources import open_gnss_source
 
     source = open_gnss_source(path)
     for sentence in source:
@@ -103,17 +97,24 @@ def _merge(first, second):
     return heapq.merge(first, second, key=lambda m: m[2])
 
 
-def make_mapper(options: ReplayOptions, calibration: Calibration):
-    if options.method.startswith("rph"):
-        from pipeline.rph import RphMapper, rph_config
+def make_mapper(config: ServiceConfig, calibration: Calibration):
+    """The mapper of `pipeline.method`, with the config's settings."""
+    method = config.pipeline.method
+    if method.startswith("rph"):
+        from treetraits.pipeline.rph import RphMapper, rph_config
 
-        preset = "vlp16" if options.method == "rph-vlp16" else "shipped"
+        preset = "vlp16" if method == "rph-vlp16" else "shipped"
         return RphMapper(rph_config(preset), calibration=calibration)
-    from pipeline.config import MapperConfig, TraitsConfig
-    from pipeline.mapper import TreeMapper
+    from treetraits.pipeline.mapper import TreeMapper
 
-    config = MapperConfig(traits=TraitsConfig(method=options.traits))
-    return TreeMapper(config, calibration)
+    return TreeMapper(config.mapper(), calibration)
+
+
+def make_processor(config: ServiceConfig, calibration: Calibration, lidar_model: str = "auto"):
+    """The processing core shared by replay and the live service."""
+    return SurveyProcessor(
+        make_mapper(config, calibration), calibration, config.localization, lidar_model
+    )
 
 
 @dataclass(frozen=True)
@@ -127,44 +128,37 @@ def run_replay(
     path: Path, out_dir: Path, options: ReplayOptions, progress: Callable[[int], None] | None = None
 ) -> ReplayReport:
     """Process `path` into `out_dir` (traits.sqlite, trees.geojson, trees.csv)."""
-    if options.method not in METHODS:
-        raise ConfigError(f"--method must be one of {METHODS}, got {options.method!r}")
-    if options.traits not in TRAITS:
-        raise ConfigError(f"--traits must be one of {TRAITS}, got {options.traits!r}")
+    cfg = options.config
     source = open_input(path, options.nmea)
     if options.calibration is not None:
         calibration = load_calibration(options.calibration)
     elif source.calibration:
         calibration = load_calibration(source.calibration)
+    elif cfg.pipeline.calibration:
+        calibration = load_calibration(Path(cfg.pipeline.calibration))
     else:
         calibration = Calibration()
     if options.field_map is not None:
         field_map = load_field_map(options.field_map)
     elif source.field_map:
         field_map = parse_geojson(source.field_map.decode(), f"{path} (attached field map)")
+    elif cfg.pipeline.field_map:
+        field_map = load_field_map(Path(cfg.pipeline.field_map))
     else:
         field_map = []
 
     out_dir.mkdir(parents=True, exist_ok=True)
     for stale in (STORE_NAME, f"{STORE_NAME}-wal", f"{STORE_NAME}-shm"):
         (out_dir / stale).unlink(missing_ok=True)  # a replay is a run of its own
-    mapper = make_mapper(options, calibration)
-    processor = SurveyProcessor(mapper, calibration)
+    processor = make_processor(cfg, calibration)
     summary = {
         "software": f"treetraits {__version__}",
         "input": str(path),
-        "method": options.method,
-        "traits": options.traits,
+        "method": cfg.pipeline.method,
+        "traits": cfg.traits.method,
         "calibration": calibration.to_json(),
     }
-    writer = RunWriter(
-        out_dir,
-        processor,
-        field_map,
-        min_observations=options.min_observations,
-        match_gate_m=options.match_gate_m,
-        facts=summary,
-    )
+    writer = RunWriter(out_dir, processor, field_map, cfg.output, facts=summary)
     next_export = None
     try:
         for topic, data, log_time, publish_time in source.messages:
@@ -174,7 +168,7 @@ def run_replay(
             # Exports follow recorded time, so a replay is deterministic.
             if outcomes and (next_export is None or log_time >= next_export):
                 writer.export()
-                next_export = log_time + int(options.export_every_s * 1e9)
+                next_export = log_time + int(cfg.output.export_every_s * 1e9)
             if progress:
                 progress(len(data))
         for outcome in processor.finish():

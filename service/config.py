@@ -5,21 +5,40 @@
 `section.key` (and the nearest known key for a typo). Relative paths are taken from the
 config file's directory, so `dump_config` always prints absolute ones and reading its
 output back gives an equal config.
+
+The pipeline's sections ([detection], [tracking], [traits], [localization]) are the very
+dataclasses the algorithms take (`pipeline.config`, `pipeline.localization.config`):
+a key is a field, its default the field's default, its help the comment above the field,
+and the dataclass checks its own values. `treetraits replay --config` and `eval --config`
+read the same file.
 """
 
 from __future__ import annotations
 
+import ast
 import difflib
+import functools
+import inspect
 import ipaddress
 import json
 import math
 import sys
-from dataclasses import dataclass, field, fields, replace
+import textwrap
+from dataclasses import MISSING, Field, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from drivers.velodyne.models import model_by_name
+from treetraits.drivers.velodyne.models import model_by_name
 from treetraits.errors import ConfigError
+from treetraits.pipeline.config import (
+    TRAIT_METHODS,
+    DetectionConfig,
+    MapperConfig,
+    TrackingConfig,
+    TraitsConfig,
+)
+from treetraits.pipeline.georef import DEFAULT_GATE_M
+from treetraits.pipeline.localization.config import LocalizationConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -28,8 +47,8 @@ else:  # pragma: no cover - Python 3.10
 
 DEFAULT_CONFIG_PATH = Path("/etc/treetraits/config.toml")
 
-METHODS = ("paper", "rph", "rph-vlp16")  # as `treetraits replay --method`
-TRAITS = ("paper", "robust")
+# rph: the baseline as shipped; rph-vlp16: RPH retuned for single VLP-16 scans.
+METHODS = ("paper", "rph", "rph-vlp16")
 WHEEL_KINDS = ("jackal", "bridge")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
@@ -103,6 +122,19 @@ class OutputConfig:
             check=_positive,
         ),
     )
+    # A stray cluster at the edge of view is seen once; at 10 Hz a real tree in range is
+    # seen in dozens of scans.
+    min_observations: int = field(
+        default=3,
+        metadata=_key("a tree seen in fewer scans is not reported", check=_at_least(1)),
+    )
+    match_gate_m: float = field(
+        default=DEFAULT_GATE_M,
+        metadata=_key(
+            "a tree is matched to the nearest field-map tree within this distance (m)",
+            check=_positive,
+        ),
+    )
 
 
 @dataclass(frozen=True)
@@ -110,19 +142,12 @@ class PipelineConfig:
     method: str = field(
         default="paper", metadata=_key("paper | rph | rph-vlp16", check=_one_of(METHODS))
     )
-    traits: str = field(default="paper", metadata=_key("paper | robust", check=_one_of(TRAITS)))
     calibration: str = field(
         default="",
         metadata=_key('calibration v1 JSON; "" = built-in default calibration', path=True),
     )
     field_map: str = field(
         default="", metadata=_key('GeoJSON or CSV field map; "" = none', path=True)
-    )
-    min_observations: int = field(
-        default=3, metadata=_key("a tree seen in fewer scans is not reported", check=_at_least(1))
-    )
-    match_gate_m: float = field(
-        default=1.5, metadata=_key("field-map matching distance", check=_positive)
     )
 
 
@@ -239,6 +264,11 @@ class ServiceSection:
 
 SECTION_HELP = {
     "queues": "bounded; a receiver never blocks: when full the NEWEST item is dropped and counted",
+    "detection": "per scan: crop box, ground, clusters (reasons: docs/pipeline.md)",
+    "tracking": "one Kalman filter per tree, the paper's gates (docs/pipeline.md)",
+    "traits": "width and height per tree: paper | robust (docs/pipeline.md)",
+    "localization": "wheels + GNSS filter (reasons: docs/localization.md)",
+    "localization.sigma_per_hdop": "metres of 1-sigma per unit of HDOP, by GGA quality",
 }
 
 
@@ -246,6 +276,10 @@ SECTION_HELP = {
 class ServiceConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    detection: DetectionConfig = field(default_factory=DetectionConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    traits: TraitsConfig = field(default_factory=TraitsConfig)
+    localization: LocalizationConfig = field(default_factory=LocalizationConfig)
     lidar: LidarConfig = field(default_factory=LidarConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     gnss: GnssConfig = field(default_factory=GnssConfig)
@@ -253,6 +287,10 @@ class ServiceConfig:
     record: RecordConfig = field(default_factory=RecordConfig)
     queues: QueuesConfig = field(default_factory=QueuesConfig)
     service: ServiceSection = field(default_factory=ServiceSection)
+
+    def mapper(self) -> MapperConfig:
+        """The tree pipeline's settings (method `paper`)."""
+        return MapperConfig(self.detection, self.tracking, self.traits)
 
 
 # --- reading ---------------------------------------------------------------------------
@@ -282,40 +320,81 @@ def load_config(path: Path | None) -> ServiceConfig:
 def parse_config(document: dict[str, Any], base: Path, source: str = "config") -> ServiceConfig:
     """A parsed TOML document to a checked config; relative paths resolved against `base`."""
     sections = {f.name: f for f in fields(ServiceConfig)}
-    values: dict[str, Any] = {}
     for name, content in document.items():
         if name not in sections:
             raise ConfigError(f"{source}: unknown section [{name}]{_nearest(name, sections)}")
         if not isinstance(content, dict):
             raise ConfigError(f"{source}: {name} must be a [{name}] table of keys")
-        section_type = sections[name].default_factory  # type: ignore[misc]
-        values[name] = _parse_section(name, section_type, content, base, source)
-    return ServiceConfig(**values)
+    return _parse_table(ServiceConfig, document, "", base, source)
 
 
-def _parse_section(name: str, section_type, content: dict, base: Path, source: str):
-    known = {f.name: f for f in fields(section_type)}
+def _parse_table(table_type, content: dict, where: str, base: Path, source: str):
+    """One TOML table into the dataclass `table_type` (sub-tables into nested dataclasses);
+    the dataclass's own checks run on construction and are reported with `source`."""
+    known = {f.name: f for f in fields(table_type)}
     values = {}
     for key, raw in content.items():
-        where = f"{name}.{key}"
+        name = f"{where}.{key}" if where else key
         if key not in known:
-            raise ConfigError(f"{source}: unknown key {where}{_nearest(key, known, name)}")
+            raise ConfigError(f"{source}: unknown key {name}{_nearest(key, known, where)}")
         spec = known[key]
-        value = _typed(raw, spec.default, where, source)
+        default = _default(spec)
+        if is_dataclass(default):
+            if not isinstance(raw, dict):
+                raise ConfigError(f"{source}: {name} must be a [{name}] table of keys")
+            values[key] = _parse_table(type(default), raw, name, base, source)
+            continue
+        value = _typed(raw, default, name, source)
         check = spec.metadata.get("check")
         problem = check(value) if check else None
         if problem:
-            raise ConfigError(f"{source}: {where} {problem}, got {_show(raw)}")
+            raise ConfigError(f"{source}: {name} {problem}, got {_show(raw)}")
         if spec.metadata.get("path") and value and not Path(value).is_absolute():
             value = str((base / value).resolve())
-        if name == "camera" and key == "device":
+        if name == "camera.device":
             value = _camera_device(value, base)
         values[key] = value
-    return section_type(**values)
+    try:
+        return table_type(**values)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _default(spec: Field) -> Any:
+    if spec.default_factory is not MISSING:
+        return spec.default_factory()
+    return spec.default
+
+
+_TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
 
 
 def _typed(raw: Any, default: Any, where: str, source: str) -> Any:
-    """`raw` as the type of the key's default: bool, int, float (an int is fine) or str."""
+    """`raw` as the type of the key's default: bool, int, float (an int is fine), str, a
+    fixed-length array (tuple) or a table of numbers keyed by integers (dict)."""
+    if isinstance(default, tuple):
+        if not isinstance(raw, list) or len(raw) != len(default):
+            raise ConfigError(
+                f"{source}: {where} must be an array of {len(default)} values, got {_show(raw)}"
+            )
+        return tuple(
+            _typed(item, d, f"{where}[{i}]", source)
+            for i, (item, d) in enumerate(zip(raw, default, strict=True))
+        )
+    if isinstance(default, dict):
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{source}: {where} must be a table, got {_show(raw)}")
+        sample = next(iter(default.values()))
+        typed = {}
+        for key, value in raw.items():
+            try:
+                number = int(key)
+            except ValueError:
+                raise ConfigError(
+                    f"{source}: {where}: keys must be integers, got {key!r}"
+                ) from None
+            typed[number] = _typed(value, sample, f"{where}.{key}", source)
+        return typed
     kind = type(default)
     if kind is bool:
         ok = isinstance(raw, bool)
@@ -328,8 +407,7 @@ def _typed(raw: Any, default: Any, where: str, source: str) -> Any:
     else:
         ok = isinstance(raw, str)
     if not ok:
-        names = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
-        raise ConfigError(f"{source}: {where} must be {names[kind]}, got {_show(raw)}")
+        raise ConfigError(f"{source}: {where} must be {_TYPE_NAMES[kind]}, got {_show(raw)}")
     return kind(raw)
 
 
@@ -357,21 +435,67 @@ def _show(value: Any) -> str:
 
 def dump_config(cfg: ServiceConfig, comments: bool = True) -> str:
     """`cfg` as TOML that `load_config` reads back to an equal config; with `comments`,
-    each key is followed by what it does."""
+    each key is followed by what it does (and its default where the value differs)."""
     lines: list[str] = []
     for section in fields(ServiceConfig):
-        content = getattr(cfg, section.name)
-        header = f"[{section.name}]"
-        if comments and section.name in SECTION_HELP:
-            header = f"{header:<34} # {SECTION_HELP[section.name]}"
-        lines.append(header)
-        for spec in fields(content):
-            assignment = f"{spec.name} = {_toml_value(getattr(content, spec.name))}"
-            if comments:
-                assignment = f"{assignment:<34} # {spec.metadata['help']}"
-            lines.append(assignment.rstrip())
-        lines.append("")
+        _dump_table(section.name, getattr(cfg, section.name), comments, lines)
     return "\n".join(lines)
+
+
+def _dump_table(name: str, content: Any, comments: bool, lines: list[str]) -> None:
+    header = f"[{name}]"
+    if comments and name in SECTION_HELP:
+        header = f"{header:<34} # {SECTION_HELP[name]}"
+    lines.append(header)
+    helps = field_help(type(content))
+    nested = []
+    for spec in fields(content):
+        value = getattr(content, spec.name)
+        if is_dataclass(value):
+            nested.append((f"{name}.{spec.name}", value))
+            continue
+        assignment = f"{spec.name} = {_toml_value(value)}"
+        if comments:
+            note = spec.metadata.get("help") or helps.get(spec.name, "")
+            default = _default(spec)
+            if value != default:
+                note = f"{note} [default {_toml_value(default)}]".strip()
+            assignment = f"{assignment:<34} # {note}" if note else assignment
+        lines.append(assignment.rstrip())
+    lines.append("")
+    for sub_name, sub_content in nested:  # TOML: a table's keys before its sub-tables
+        _dump_table(sub_name, sub_content, comments, lines)
+
+
+@functools.cache
+def field_help(table_type: type) -> dict[str, str]:
+    """The first sentence of the comment above each field of a dataclass: the reasons for
+    the pipeline's values live there, once, and `config dump` shows them."""
+    try:
+        source = textwrap.dedent(inspect.getsource(table_type))
+    except (OSError, TypeError):
+        return {}
+    lines = source.splitlines()
+    helps = {}
+    for node in ast.parse(source).body[0].body:
+        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
+            continue
+        row, comment = node.lineno - 2, []
+        while row >= 0 and lines[row].strip().startswith("#"):
+            comment.insert(0, lines[row].strip().lstrip("#").strip())
+            row -= 1
+        inline = lines[node.lineno - 1].partition("  # ")[2].strip()
+        text = " ".join(comment) or inline
+        if text:
+            helps[node.target.id] = _first_sentence(text)
+    return helps
+
+
+def _first_sentence(text: str, limit: int = 110) -> str:
+    cut = text.find(". ")
+    if 0 < cut < limit:
+        return text[:cut]
+    return text if len(text) <= limit else text[: limit - 3].rstrip() + "..."
 
 
 def _toml_value(value: Any) -> str:
@@ -379,8 +503,28 @@ def _toml_value(value: Any) -> str:
         return "true" if value else "false"
     if isinstance(value, int | float):
         return repr(value)
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
     # A TOML basic string takes JSON's escapes (ASCII only, so none is ambiguous).
     return json.dumps(value, ensure_ascii=True)
+
+
+def with_method(
+    cfg: ServiceConfig, method: str | None = None, traits: str | None = None
+) -> ServiceConfig:
+    """`cfg` with another `pipeline.method` and `traits.method` (None: keep), checked as
+    the file's values are (the command line's --method and --traits)."""
+    if method is not None and method not in METHODS:
+        raise ConfigError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if traits is not None and traits not in TRAIT_METHODS:
+        raise ConfigError(f"traits must be one of {', '.join(TRAIT_METHODS)}, got {traits!r}")
+    return with_overrides(
+        cfg,
+        pipeline={"method": method or cfg.pipeline.method},
+        traits={"method": traits or cfg.traits.method},
+    )
 
 
 def with_overrides(cfg: ServiceConfig, **sections: dict[str, Any]) -> ServiceConfig:

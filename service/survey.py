@@ -29,18 +29,18 @@ from typing import Any
 
 import numpy as np
 
-from drivers import recording as rec
-from drivers.calibration import Calibration
-from drivers.gnss.epochs import EpochAssembler
-from drivers.gnss.sentences import decode
-from drivers.gnss.stream import SentenceSplitter
-from drivers.records import Fix, Frame, Pose, Scan, WheelSample
-from drivers.velodyne.batcher import ScanBatcher
-from firmware_bridge.jackal.session import JackalProtocol
-from firmware_bridge.retrofit.reader import BridgeDecoder
-from pipeline.localization import LocalizationConfig, Localizer
-from pipeline.localization.utm import wrap_angle
-from pipeline.projection import scan_mid_time
+from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import Calibration
+from treetraits.drivers.gnss.epochs import EpochAssembler
+from treetraits.drivers.gnss.sentences import decode
+from treetraits.drivers.gnss.stream import SentenceSplitter
+from treetraits.drivers.records import Fix, Frame, Pose, Scan, WheelSample
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.firmware_bridge.jackal.session import JackalProtocol
+from treetraits.firmware_bridge.retrofit.reader import BridgeDecoder
+from treetraits.pipeline.localization import LocalizationConfig, Localizer
+from treetraits.pipeline.localization.utm import wrap_angle
+from treetraits.pipeline.projection import scan_mid_time
 
 # The longest a scan waits past its middle (by the newest message) for a settled pose
 # and its frame: the wheels or the receiver gone, a camera running late.
@@ -75,12 +75,16 @@ class SurveyStats:
 
 
 class SurveyProcessor:
-    def __init__(self, mapper, calibration: Calibration, lidar_model: str = "auto"):
+    def __init__(
+        self,
+        mapper,
+        calibration: Calibration,
+        localization: LocalizationConfig | None = None,
+        lidar_model: str = "auto",
+    ):
         self.mapper = mapper
         self.calibration = calibration
-        self.localizer = Localizer(
-            LocalizationConfig(T_base_gnss=calibration.T_base_gnss), calibration.wheels
-        )
+        self.localizer = Localizer(localization, calibration.wheels, calibration.T_base_gnss)
         self.stats = SurveyStats()
         self._batcher = ScanBatcher(model=lidar_model)
         self._splitter = SentenceSplitter()

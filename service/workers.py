@@ -26,15 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import recording as rec
-from drivers.camera.replay import VideoFileSource
-from drivers.camera.settings import CameraSettings
-from drivers.velodyne.models import DATA_PACKET_SIZE, POSITION_PACKET_SIZE
-from drivers.velodyne.packet import resolve_hour
-from drivers.velodyne.sources import UdpSource
-from pipeline.service.config import CameraConfig, GnssConfig, LidarConfig, WheelsConfig
-from pipeline.service.health import SensorState
+from treetraits.drivers import recording as rec
+from treetraits.drivers.camera.replay import VideoFileSource
+from treetraits.drivers.camera.settings import CameraSettings
+from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE, POSITION_PACKET_SIZE
+from treetraits.drivers.velodyne.packet import resolve_hour
+from treetraits.drivers.velodyne.sources import UdpSource
 from treetraits.errors import SourceError
+from treetraits.service.config import CameraConfig, GnssConfig, LidarConfig, WheelsConfig
+from treetraits.service.health import SensorState
 
 log = logging.getLogger("treetraits.service")
 
@@ -111,7 +111,7 @@ def name_os_thread(name: str) -> None:
 
 def lidar_publish_time(payload: bytes, t_host: int) -> int:
     """The recording's `publish_time` of a LiDAR payload: its microseconds past the hour
-    (ToH) with the hour from `t_host` (ARCHITECTURE.md, recording format v1)."""
+    (ToH) with the hour from `t_host` (docs/architecture.md, recording format v1)."""
     if len(payload) == DATA_PACKET_SIZE:
         offset = 1200
     elif len(payload) == POSITION_PACKET_SIZE:
@@ -312,7 +312,7 @@ class GnssWorker(Worker):
         self.cfg = cfg
 
     def _open_source(self):
-        from drivers.gnss.sources import SerialSource
+        from treetraits.drivers.gnss.sources import SerialSource
 
         return SerialSource(
             self.cfg.port, self.cfg.baudrate, reconnect=True, reopen_min_s=0.25, reopen_max_s=5.0
@@ -342,7 +342,7 @@ class JackalWorker(Worker):
         self._connected = True
 
     def _open_source(self):
-        from firmware_bridge.jackal.session import JackalSession
+        from treetraits.firmware_bridge.jackal.session import JackalSession
 
         session = JackalSession(self.cfg.port, self.cfg.baudrate)
         session.start()
@@ -350,7 +350,7 @@ class JackalWorker(Worker):
         return session
 
     def _receive(self, session) -> Message | None:
-        from firmware_bridge.jackal.records import LinkEvent, SerialChunk
+        from treetraits.firmware_bridge.jackal.records import LinkEvent, SerialChunk
 
         item = session.read(READ_TIMEOUT_S)
         if isinstance(item, SerialChunk):
@@ -375,13 +375,13 @@ class BridgeWorker(Worker):
         self.cfg = cfg
 
     def _open_source(self):
-        from firmware_bridge.retrofit.serial_link import SerialLink
+        from treetraits.firmware_bridge.retrofit.serial_link import SerialLink
 
         # wait_for_port: a board plugged in later is picked up by the link itself.
         return SerialLink(self.cfg.port, self.cfg.baudrate, reconnect=True, wait_for_port=True)
 
     def _receive(self, link) -> Message | None:
-        from firmware_bridge.retrofit.serial_link import BridgeChunk
+        from treetraits.firmware_bridge.retrofit.serial_link import BridgeChunk
 
         item = link.read(READ_TIMEOUT_S)
         if isinstance(item, BridgeChunk):
@@ -434,7 +434,7 @@ class PacedVideo:
 
 
 def is_video_file(device: str) -> bool:
-    from drivers.camera.sources import is_live_uri
+    from treetraits.drivers.camera.sources import is_live_uri
 
     return not is_live_uri(device) and Path(device).is_file()
 
@@ -452,7 +452,7 @@ class CameraWorker(Worker):
     def _open_source(self):
         if is_video_file(self.cfg.device):
             return PacedVideo(Path(self.cfg.device))
-        from drivers.camera.live import UvcCamera
+        from treetraits.drivers.camera.live import UvcCamera
 
         return UvcCamera(self.cfg.device, CameraSettings(wait_for_device=True))
 

@@ -27,9 +27,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from drivers.camera.devices import list_video_devices, resolve_device
-from pipeline.service.config import DEFAULT_CONFIG_PATH, ServiceConfig, load_config
+from treetraits.drivers.camera.devices import list_video_devices, resolve_device
 from treetraits.errors import TreetraitsError
+from treetraits.service.config import DEFAULT_CONFIG_PATH, ServiceConfig, load_config
 
 SERVICE_USER = "treetraits"
 SERVICE_GROUPS = ("dialout", "video")

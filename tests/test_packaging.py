@@ -1,0 +1,123 @@
+"""One import root: a wheel built from the checkout installs `treetraits` and nothing else
+at the top level, every package folder is in it, and the layers import one way."""
+
+from __future__ import annotations
+
+import ast
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+# Folder at the repository's root -> its package under `treetraits`.
+ROOTS = {
+    "treetraits": "treetraits",
+    "drivers": "treetraits.drivers",
+    "firmware_bridge": "treetraits.firmware_bridge",
+    "pipeline": "treetraits.pipeline",
+    "service": "treetraits.service",
+    "sim": "treetraits.sim",
+}
+# What each layer may import of ours (docs/architecture.md); errors and the version are
+# the root package's and every layer may import them.
+ALLOWED = {
+    "treetraits.drivers": {"treetraits.drivers"},
+    "treetraits.firmware_bridge": {"treetraits.firmware_bridge", "treetraits.drivers"},
+    "treetraits.pipeline": {"treetraits.pipeline", "treetraits.drivers"},
+    "treetraits.sim": {"treetraits.sim", "treetraits.drivers", "treetraits.firmware_bridge"},
+    "treetraits.service": {
+        "treetraits.service",
+        "treetraits.pipeline",
+        "treetraits.drivers",
+        "treetraits.firmware_bridge",
+    },
+}
+SHARED = {"treetraits", "treetraits.errors"}
+
+
+def package_dirs() -> dict[str, Path]:
+    found = {}
+    for folder, package in ROOTS.items():
+        for init in sorted((REPO / folder).rglob("__init__.py")):
+            parts = init.parent.relative_to(REPO / folder).parts
+            found[".".join((package, *parts))] = init.parent
+    return found
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> zipfile.ZipFile:
+    """Built from a copy of the sources: a `build/` left in the checkout can hold modules
+    that no longer exist."""
+    out = tmp_path_factory.mktemp("wheel")
+    source = out / "source"
+    skip = shutil.ignore_patterns(".*", "build", "out", "tests", "bench", "docs", "*.egg-info")
+    shutil.copytree(REPO, source, ignore=skip)
+    result = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-w", str(out), str(source)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    (path,) = out.glob("treetraits-*.whl")
+    return zipfile.ZipFile(path)
+
+
+def test_the_wheel_installs_only_treetraits_at_the_top(wheel):
+    tops = {name.split("/")[0] for name in wheel.namelist()}
+    assert {t for t in tops if not t.endswith(".dist-info")} == {"treetraits"}
+
+
+def test_every_package_folder_is_in_the_wheel(wheel):
+    names = set(wheel.namelist())
+    for package, folder in package_dirs().items():
+        init = package.replace(".", "/") + "/__init__.py"
+        assert init in names, f"{folder} is not packaged: add {package} to pyproject.toml"
+    assert "treetraits/sim/data/citrusfarm_calibration_v1.json" in names
+
+
+def test_outside_the_checkout_only_treetraits_is_ours(tmp_path):
+    probe = (
+        "import importlib.util as u, treetraits.service.replay, treetraits.sim.run\n"
+        "print([n for n in ('drivers', 'pipeline', 'sim', 'firmware_bridge', 'service') "
+        "if u.find_spec(n) is not None])"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], cwd=tmp_path, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"
+
+
+def imports_of(path: Path, package: str) -> set[str]:
+    """Our modules that `path` imports (absolute and relative)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                names.add(f"{base}.{node.module}" if node.module else base)
+            elif node.module:
+                names.add(node.module)
+    return {n for n in names if n == "treetraits" or n.startswith("treetraits.")}
+
+
+def test_the_layers_import_one_way():
+    wrong = []
+    for package, folder in package_dirs().items():
+        layer = next((lay for lay in ALLOWED if package.startswith(lay)), None)
+        if layer is None:
+            continue  # the CLI and the evaluation sit on top and may import anything
+        for module in folder.glob("*.py"):
+            for name in imports_of(module, package):
+                if name in SHARED:
+                    continue
+                if not any(name == a or name.startswith(a + ".") for a in ALLOWED[layer]):
+                    wrong.append(f"{module.relative_to(REPO)} imports {name}")
+    assert not wrong, "\n".join(wrong)
