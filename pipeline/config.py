@@ -20,6 +20,7 @@ from treetraits.errors import ConfigError
 TRAIT_METHODS = ("paper", "robust")
 CLUSTERING_METHODS = ("kdtree", "dbscan")
 GROUND_METHODS = ("numpy", "open3d")
+GROUND_MODELS = ("terrain", "plane")
 
 
 @dataclass(frozen=True)
@@ -41,8 +42,13 @@ class CropConfig:
 
 @dataclass(frozen=True)
 class GroundConfig:
-    """RANSAC plane and the ground band."""
+    """The ground model and the ground band."""
 
+    # "terrain": the elevation grid grown from the footprint (`detection.terrain`), which
+    # follows slopes, undulation and beds. "plane": one RANSAC plane per scan (the keys
+    # below), kept to compare with: on sloped, undulating ground it leaves ground above
+    # the plane that clusters into false trees.
+    model: str = "terrain"
     # Points offered to RANSAC: within this height of the robot's own footprint plane.
     # The ground is the lowest surface and passes through z = 0 under the robot; a 3 deg
     # slope rises 0.5 m in 10 m, enough for the plane's tilt to be fitted.
@@ -81,6 +87,43 @@ class GroundConfig:
 
 
 @dataclass(frozen=True)
+class TerrainConfig:
+    """The elevation grid under each scan (`pipeline.terrain`), grown from the footprint.
+    VLP-16 on a Jackal (0.38-0.44 m up): on flat ground its rings below the horizon land
+    at 1.5, 1.7, 2.1, 2.5, 3.3, 4.6, 7.6 and 23 m, dense along each ring, sparse across."""
+
+    # 0.5 m: several returns of one ring per cell along the ring at any range in the box,
+    # and half the gap between the nearest rings; finer cells leave most cells empty.
+    cell_m: float = 0.5
+    # Ground height changes less than this between two cells next to each other, beyond
+    # the slope: range noise (+-3 cm) plus furrows and undulation of +-10 cm. A citrus
+    # skirt hangs 0.3-0.7 m above the ground at the crown's edge: it is not reached.
+    step_tolerance_m: float = 0.15
+    # The steepest ground, rise over run, over the distance to the nearest accepted
+    # ground: 15 % along a row with 8 % across is 17 %; 0.2 leaves a little for bumps.
+    max_slope: float = 0.2
+    # Ground is not looked for beyond this distance from ground already accepted: the
+    # widest gap between the rings' ground arcs inside the crop (4.6 -> 7.6 m) plus one
+    # metre for a pitched robot.
+    max_gap_m: float = 4.0
+    # Across a gap (more than two cells from accepted ground) a candidate needs this many
+    # other candidates within `support_radius_m`: a ring's arc on open ground gives
+    # dozens; a trunk or post hit by a level ring gives one or two.
+    min_support_cells: int = 4
+    support_radius_m: float = 1.0
+    # The ground is seeded within this distance of the robot, where the rings below the
+    # horizon land five times (1.5-4.6 m on a Jackal): from the lowest extensive surface
+    # there (the footprint itself has no returns).
+    seed_radius_m: float = 6.0
+    # A cell's ground height: the mean of its returns within this height of its lowest
+    # one (the lowest alone is ~2 sigma of the range noise low).
+    lowest_layer_m: float = 0.05
+    # Ground under a crown or in a shadow is filled from the ground around it, weighted
+    # by a Gaussian of this width: about a crown radius.
+    fill_sigma_m: float = 1.0
+
+
+@dataclass(frozen=True)
 class ClusterConfig:
     """Voxel grid, then single-linkage Euclidean clustering."""
 
@@ -107,12 +150,52 @@ class ClusterConfig:
 
 
 @dataclass(frozen=True)
+class ClassifyConfig:
+    """Tree or not (`pipeline.classify`): the crop profile and the shape rules. Defaults:
+    citrus, from young trees of 1.0-1.5 m to old ones of 5 m, planted 2.5-7 m apart."""
+
+    # Shorter than this above the terrain is not a tree: weeds and cover crop reach
+    # 0.6 m, drip lines 0.4 m; the youngest trees mapped are 1.0 m (a far scan misses a
+    # tree's top by up to one ring gap, so a young tree is judged on its near scans).
+    min_height_m: float = 0.8
+    # Taller than an old citrus tree (5 m) with room to spare: a building, a mast.
+    max_height_m: float = 8.0
+    # A tree stands on the ground: its trunk, or a skirt hanging to 0.3-0.7 m, is in
+    # view of a LiDAR mounted this low. A cluster whose lowest return is higher than
+    # this is a ceiling, a roof's edge or a fragment of a crown.
+    max_base_m: float = 1.0
+    # Narrower than this is a post (0.1 m), a pole, a trunk alone or a person seen from
+    # the side (0.3-0.5 m); a young tree's crown is 0.8 m and up.
+    min_width_m: float = 0.6
+    # Width over height. A citrus crown is about as wide as it is tall (0.8-1.2, young
+    # trees included); a standing person is 0.45 m / 1.75 m = 0.26, a post 0.05.
+    min_aspect: float = 0.4
+    # Wider than this is not one tree: an old tree's crown is 4-5 m; a hedgerow's
+    # touching crowns are split at their trunks before they are judged (`tracking`).
+    max_width_m: float = 7.0
+    # Foliage is rough along a ring, everything else in a grove is smooth (see
+    # `classify.roughness`): walls, vehicles, posts and people measured 0.004-0.03 m on
+    # the real indoor captures (VLP-16 range noise), citrus foliage is leaves of 5-10 cm
+    # at depths decimetres apart (the twin's crowns: 0.10-0.13 m).
+    min_roughness_m: float = 0.04
+    # With the camera on at least this share of its returns, a mean NDVI below this is
+    # not vegetation: bare soil reads 0.1-0.2, citrus foliage 0.5-0.8, wood, metal and
+    # concrete below 0.2.
+    min_ndvi: float = 0.3
+    min_ndvi_share: float = 0.3
+    # A track is a tree when at least this share of its scans judged it one.
+    min_tree_share: float = 0.5
+
+
+@dataclass(frozen=True)
 class DetectionConfig:
     """Per scan: the spatial filter, the ground, the clusters (`detection.detect`)."""
 
     crop: CropConfig = field(default_factory=CropConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
+    terrain: TerrainConfig = field(default_factory=TerrainConfig)
     cluster: ClusterConfig = field(default_factory=ClusterConfig)
+    classify: ClassifyConfig = field(default_factory=ClassifyConfig)
 
     def __post_init__(self) -> None:
         _validate_detection(self)
@@ -201,7 +284,7 @@ def _need(ok: bool, what: str) -> None:
 
 
 def _validate_detection(d: DetectionConfig) -> None:
-    c, g, k = d.crop, d.ground, d.cluster
+    c, g, k, e = d.crop, d.ground, d.cluster, d.terrain
     for name, (lo, hi) in (("x_m", c.x_m), ("y_m", c.y_m), ("z_m", c.z_m)):
         _need(lo < hi, f"detection.crop.{name} must be [low, high] with low < high, got {(lo, hi)}")
     _need(c.min_range_m >= 0, "detection.crop.min_range_m must be >= 0")
@@ -210,6 +293,24 @@ def _validate_detection(d: DetectionConfig) -> None:
     _need(0 < g.max_tilt_deg < 90, "detection.ground.max_tilt_deg must be in (0, 90)")
     _need(g.method in GROUND_METHODS, f"detection.ground.method must be one of {GROUND_METHODS}")
     _need(g.clearance_m > 0, "detection.ground.clearance_m must be > 0")
+    _need(g.model in GROUND_MODELS, f"detection.ground.model must be one of {GROUND_MODELS}")
+    _need(e.cell_m > 0 and e.step_tolerance_m > 0, "detection.terrain: cell_m, step > 0")
+    _need(0 < e.max_slope < 2, "detection.terrain.max_slope must be in (0, 2)")
+    _need(e.max_gap_m >= e.cell_m, "detection.terrain.max_gap_m must be >= cell_m")
+    _need(e.min_support_cells >= 0, "detection.terrain.min_support_cells must be >= 0")
+    _need(e.support_radius_m > 0, "detection.terrain.support_radius_m must be > 0")
+    _need(e.seed_radius_m > 0, "detection.terrain.seed_radius_m must be > 0")
+    _need(e.lowest_layer_m >= 0, "detection.terrain.lowest_layer_m must be >= 0")
+    _need(e.fill_sigma_m > 0, "detection.terrain.fill_sigma_m must be > 0")
+    f = d.classify
+    _need(0 <= f.min_height_m < f.max_height_m, "detection.classify: 0 <= min < max height")
+    _need(f.max_base_m > 0, "detection.classify.max_base_m must be > 0")
+    _need(0 <= f.min_width_m < f.max_width_m, "detection.classify: 0 <= min < max width")
+    _need(f.min_aspect >= 0, "detection.classify.min_aspect must be >= 0")
+    _need(f.min_roughness_m >= 0, "detection.classify.min_roughness_m must be >= 0")
+    _need(0 <= f.min_ndvi_share <= 1, "detection.classify.min_ndvi_share must be in [0, 1]")
+    _need(-1 <= f.min_ndvi <= 1, "detection.classify.min_ndvi must be in [-1, 1]")
+    _need(0 < f.min_tree_share <= 1, "detection.classify.min_tree_share must be in (0, 1]")
     _need(k.voxel_m > 0 and k.tolerance_m > 0, "detection.cluster: voxel_m, tolerance_m > 0")
     _need(1 <= k.min_points <= k.max_points, "detection.cluster: 1 <= min_points <= max_points")
     _need(

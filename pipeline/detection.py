@@ -15,7 +15,15 @@ from functools import cached_property
 
 import numpy as np
 
-from treetraits.pipeline.config import ClusterConfig, CropConfig, DetectionConfig, GroundConfig
+from treetraits.pipeline.classify import Shape, judge, shape_of
+from treetraits.pipeline.config import (
+    ClassifyConfig,
+    ClusterConfig,
+    CropConfig,
+    DetectionConfig,
+    GroundConfig,
+)
+from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
 
 # Voxel keys: 21 bits per axis (+-1M cells: +-100 km at 0.1 m), packed into one int64.
 _KEY_BITS = 21
@@ -46,6 +54,9 @@ class GroundPlane:
 
 FLAT = GroundPlane(np.array([0.0, 0.0, 1.0]), 0.0, 0, False)
 
+# What a scan's ground is: either model answers `height(xyz)` and `z_at(x, y)`.
+GroundModel = GroundPlane | TerrainGrid
+
 
 @dataclass(frozen=True)
 class Cluster:
@@ -60,7 +71,9 @@ class Cluster:
     voxels: np.ndarray  # (num_points, 3) voxel centroids, base frame
     points: np.ndarray  # (n, 3) every return of the cluster, base frame
     ring: np.ndarray  # (n,) uint8, ring of each return
-    ground_z: float  # ground plane height under the centroid, base frame
+    ground_z: float  # ground height under the centroid, base frame
+    shape: Shape  # what the tree rules read (`pipeline.classify`)
+    verdict: str  # "tree" or the reason it is not one (`classify.REASONS`)
 
     @property
     def features(self) -> np.ndarray:
@@ -85,7 +98,7 @@ class Cluster:
 @dataclass(frozen=True)
 class Detection:
     clusters: list[Cluster]
-    plane: GroundPlane
+    ground: GroundModel
     # How many points went where: input, cropped (kept by the box), ground, skirt
     # (ground candidates kept as foliage), voxels, clustered voxels, clusters dropped.
     counts: dict[str, int] = field(default_factory=dict)
@@ -279,10 +292,10 @@ def detect(
     counts["cropped"] = len(xyz)
     clock.lap("crop")
 
-    # The ground is the dominant plane near the footprint; height above it, not z,
-    # tells ground from tree when the field slopes.
-    plane = fit_ground(xyz, config.ground)
-    height = plane.height(xyz)
+    # Height above the ground under each point, not z, tells ground from tree: the
+    # terrain follows slopes, furrows and beds (`pipeline.terrain`).
+    ground = ground_model(xyz, config)
+    height = ground.height(xyz)
     clock.lap("ground")
 
     # The image check: low points that look like foliage are a skirt, not soil.
@@ -327,10 +340,20 @@ def detect(
     counts["clusters_dropped"] = int(labels.max(initial=-1) + 1 - len(clusters_kept))
     clock.lap("cluster")
 
-    clusters = _features(clusters_kept, labels, voxel_of, voxels, xyz, ring, ndvi, plane)
+    lidar_xy = T_base_lidar[:2, 3]
+    clusters = _features(
+        clusters_kept, labels, voxel_of, voxels, xyz, ring, ndvi, ground, lidar_xy, config.classify
+    )
     counts["clustered_voxels"] = sum(c.num_points for c in clusters)
     clock.lap("features")
-    return Detection(clusters, plane, counts)
+    return Detection(clusters, ground, counts)
+
+
+def ground_model(xyz: np.ndarray, config: DetectionConfig) -> GroundModel:
+    """The configured ground of one scan's cropped points (`base`)."""
+    if config.ground.model == "plane":
+        return fit_ground(xyz, config.ground)
+    return fit_terrain(xyz, config.terrain, config.crop.x_m, config.crop.y_m)
 
 
 def _size_filter(labels: np.ndarray, config: ClusterConfig) -> np.ndarray:
@@ -339,7 +362,9 @@ def _size_filter(labels: np.ndarray, config: ClusterConfig) -> np.ndarray:
     return np.flatnonzero((sizes >= config.min_points) & (sizes <= config.max_points))
 
 
-def _features(kept, labels, voxel_of, voxels, xyz, ring, ndvi, plane) -> list[Cluster]:
+def _features(
+    kept, labels, voxel_of, voxels, xyz, ring, ndvi, ground, lidar_xy, classify: ClassifyConfig
+) -> list[Cluster]:
     point_label = labels[voxel_of]
     order = np.argsort(point_label, kind="stable")
     bounds = np.searchsorted(point_label[order], np.stack([kept, kept + 1]))
@@ -351,11 +376,14 @@ def _features(kept, labels, voxel_of, voxels, xyz, ring, ndvi, plane) -> list[Cl
         cells = voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]]
         centroid = cells.mean(axis=0)
         mean_ndvi = float("nan")
+        values = None
         if ndvi is not None:
             values = ndvi[members]
             finite = values[np.isfinite(values)]
             if len(finite):
                 mean_ndvi = float(finite.mean())
+        ground_z = float(ground.z_at(centroid[0], centroid[1]))
+        shape = shape_of(xyz[members], ring[members], lidar_xy, ground_z, values)
         clusters.append(
             Cluster(
                 centroid=centroid,
@@ -364,7 +392,9 @@ def _features(kept, labels, voxel_of, voxels, xyz, ring, ndvi, plane) -> list[Cl
                 voxels=cells,
                 points=xyz[members],
                 ring=ring[members],
-                ground_z=plane.z_at(centroid[0], centroid[1]),
+                ground_z=ground_z,
+                shape=shape,
+                verdict=judge(shape, classify),
             )
         )
     return clusters

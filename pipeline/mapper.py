@@ -15,8 +15,9 @@ import numpy as np
 
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
+from treetraits.pipeline.classify import Votes
 from treetraits.pipeline.config import MapperConfig
-from treetraits.pipeline.detection import Cluster, GroundPlane, StageClock, detect
+from treetraits.pipeline.detection import Cluster, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
 from treetraits.pipeline.tracking import Motion, Tracker, motion_transform
@@ -56,7 +57,7 @@ class ScanResult:
     updated: list[int]  # trees updated by this scan, or that absorbed another
     merged: list[tuple[int, int]]  # (kept, absorbed) tree ids
     ndvi: str  # "ok", "no_frame" (none given), "no_camera", or fuse_scan's reason
-    plane: GroundPlane
+    ground: GroundModel  # the scan's ground (base frame)
     counts: dict[str, int] = field(default_factory=dict)
     stage_ms: dict[str, float] = field(default_factory=dict)
 
@@ -75,11 +76,14 @@ class TrackedTree:
     first_seen: int  # ns, host clock
     last_seen: int
     traits: str  # "paper" or "robust"
+    # "tree", or why it is not one (`pipeline.classify.REASONS`), by its scans' majority
+    kind: str = "tree"
 
 
 @dataclass
 class _Tree:
     traits: PaperTraits | RobustTraits
+    votes: Votes = field(default_factory=Votes)
     ndvi_sum: float = 0.0
     ndvi_count: int = 0
 
@@ -153,6 +157,7 @@ class TreeMapper:
             if decision.outcome == "duplicate":
                 continue
             tree = self._trees.setdefault(decision.tree_id, _Tree(new_traits(self.config.traits)))
+            tree.votes.add(cluster.verdict)
             outline = steady and (placeable or isinstance(tree.traits, RobustTraits))
             self._observe(tree, cluster, traits_from_base, decision.tree_id, centres, outline)
         for kept, absorbed in step.merged:
@@ -182,7 +187,7 @@ class TreeMapper:
             updated=list(dict.fromkeys(updated + [kept for kept, _ in step.merged])),
             merged=step.merged,
             ndvi=ndvi_reason,
-            plane=detection.plane,
+            ground=detection.ground,
             counts={**detection.counts, "candidates": step.candidates},
             stage_ms=stage_ms or {},
         )
@@ -213,6 +218,7 @@ class TreeMapper:
                     first_seen=track.first_seen,
                     last_seen=track.last_seen,
                     traits=tree.traits.method,
+                    kind=tree.votes.kind(self.config.detection.classify.min_tree_share),
                 )
             )
         return out
@@ -302,6 +308,7 @@ class TreeMapper:
             return
         tree = self._trees.setdefault(kept, _Tree(new_traits(self.config.traits)))
         tree.traits.absorb(gone.traits)
+        tree.votes.absorb(gone.votes)
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from treetraits.drivers.records import Tree
 from treetraits.errors import TreetraitsError
+from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.georef import (
     FieldMapIndex,
@@ -66,6 +67,13 @@ class RunWriter:
 
     def reported(self) -> list:
         """The mapper's trees seen often enough to report (a stray one-scan cluster is not)."""
+        return [t for t in self.seen() if t.kind == TREE]
+
+    def rejected(self) -> list:
+        """Objects seen as often, that are not trees (each with its reason in `kind`)."""
+        return [t for t in self.seen() if t.kind != TREE]
+
+    def seen(self) -> list:
         return [t for t in self.processor.mapper.trees() if t.observations >= self.min_observations]
 
     def georeferenced(self, only: set[str] | None = None) -> list[Tree]:

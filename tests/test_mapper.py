@@ -184,7 +184,7 @@ def test_trees_carry_the_ndvi_of_foliage():
 def test_scan_results_tell_what_happened_to_each_cluster():
     _, results = mapped("paper")
     first = results[0]
-    assert first.frame == "odom" and first.plane.fitted
+    assert first.frame == "odom" and first.ground.fitted
     # The first trees (nothing to compare with); a piece of a crown split off by the
     # clustering starts a tree that the merge folds into its own at once.
     assert {c.outcome for c in first.clusters} <= {"created", "merged"}

@@ -1,0 +1,207 @@
+"""The terrain under one scan: an elevation grid grown outwards from the robot.
+
+Why this filter. A grove floor is not a plane: it slopes (up to 15 % along a row, 8 %
+across), undulates, has furrows and raised beds. One plane per scan leaves ground a
+few decimetres above it at range, and that ground clusters into false trees. Filters
+that follow the terrain come in two families: morphological (progressive morphological
+filter, PMF) and cloth simulation (CSF). Both judge a cell against a window as wide as
+the largest object, and a citrus crown is 3-5 m wide: over such a window a 15 % slope
+rises as much as a low skirt hangs (0.4-0.7 m), so slope and skirt cannot be told
+apart. What tells them apart is the *local* step: real ground changes height gradually
+from cell to cell, a crown's skirt rises out of the ground by its full height at its
+edge. So the grid is grown outwards from the ground next to the robot (the lowest
+surface with some extent within a few metres: the robot stands on it), accepting a cell
+only when its lowest returns continue the ground already accepted next to it within a
+slope limit. Everything the growth cannot reach is filled from the ground around it, the way
+a crown's ground is the ground around its trunk.
+
+Pure functions on arrays; `fit_terrain` is the recipe. Frame: whatever frame the points
+are in (`base` for detection), with z up and the robot's footprint at the origin.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from treetraits.pipeline.config import TerrainConfig
+
+
+@dataclass(frozen=True)
+class TerrainGrid:
+    """Ground height on a regular grid: cell (i, j) covers x in [x0 + i c, x0 + (i+1) c),
+    y likewise; `z` holds the ground height at each cell's centre."""
+
+    x0: float
+    y0: float
+    cell: float
+    z: np.ndarray  # (nx, ny) float64, ground height at cell centres, no NaN
+    ground: np.ndarray  # (nx, ny) bool: cells whose own lowest returns are ground
+    observed: np.ndarray  # (nx, ny) bool: cells with any return
+
+    fitted = True  # a terrain is always available (the footprint at worst)
+
+    def z_at(self, x, y) -> np.ndarray | float:
+        """Ground height at (x, y), bilinear between cell centres (clamped at the edge)."""
+        fx = (np.asarray(x, dtype=float) - self.x0) / self.cell - 0.5
+        fy = (np.asarray(y, dtype=float) - self.y0) / self.cell - 0.5
+        nx, ny = self.z.shape
+        fx = np.clip(fx, 0.0, nx - 1.0)
+        fy = np.clip(fy, 0.0, ny - 1.0)
+        i = np.minimum(fx.astype(np.int64), nx - 2) if nx > 1 else np.zeros_like(fx, np.int64)
+        j = np.minimum(fy.astype(np.int64), ny - 2) if ny > 1 else np.zeros_like(fy, np.int64)
+        tx, ty = fx - i, fy - j
+        i1, j1 = np.minimum(i + 1, nx - 1), np.minimum(j + 1, ny - 1)
+        z = self.z
+        out = (
+            z[i, j] * (1 - tx) * (1 - ty)
+            + z[i1, j] * tx * (1 - ty)
+            + z[i, j1] * (1 - tx) * ty
+            + z[i1, j1] * tx * ty
+        )
+        return float(out) if np.ndim(out) == 0 else out
+
+    def height(self, xyz: np.ndarray) -> np.ndarray:
+        """Height of each point above the terrain under it (m)."""
+        return xyz[:, 2] - self.z_at(xyz[:, 0], xyz[:, 1])
+
+    @property
+    def ground_cells(self) -> int:
+        return int(self.ground.sum())
+
+    def slope_at(self, x: float, y: float) -> tuple[float, float]:
+        """(dz/dx, dz/dy) of the terrain at (x, y), over one cell each way."""
+        h = self.cell
+        return (
+            (self.z_at(x + h, y) - self.z_at(x - h, y)) / (2 * h),
+            (self.z_at(x, y + h) - self.z_at(x, y - h)) / (2 * h),
+        )
+
+
+def fit_terrain(
+    xyz: np.ndarray,
+    config: TerrainConfig,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+) -> TerrainGrid:
+    """The terrain of one scan's points (N x 3, footprint at the origin, z up) over the
+    box x_range x y_range."""
+    c = config.cell_m
+    x0, y0 = x_range[0], y_range[0]
+    nx = max(1, math.ceil((x_range[1] - x0) / c))
+    ny = max(1, math.ceil((y_range[1] - y0) / c))
+    lowest = _lowest_layer(xyz, config, x0, y0, nx, ny)
+    observed = np.isfinite(lowest)
+    centres_x = x0 + (np.arange(nx) + 0.5) * c
+    centres_y = y0 + (np.arange(ny) + 0.5) * c
+    distance = np.hypot(centres_x[:, None], centres_y[None, :])
+
+    # Seeds: near the robot, the lowest surface with some extent is the ground (the
+    # footprint alone would trust the calibrated mount height; a wrong one, or a robot
+    # standing in a furrow, would then seed the ground in mid-air).
+    seeds = _seeds(lowest, observed, distance, config)
+    ground = _grow(lowest, observed, np.where(seeds, lowest, np.nan), seeds, config)
+    ground = _median3(ground)
+    accepted = np.isfinite(ground)
+    filled = _fill(ground, accepted, c, config.fill_sigma_m)
+    return TerrainGrid(x0, y0, c, filled, accepted & observed, observed)
+
+
+def _seeds(lowest, observed, distance, config: TerrainConfig) -> np.ndarray:
+    """Observed cells within `seed_radius_m` whose lowest layer is within the step
+    tolerance of the low tenth of those cells' heights (robust to a few returns from
+    below the ground: multipath off a puddle). None near the robot: no seed."""
+    near = observed & (distance <= config.seed_radius_m)
+    if near.sum() < config.min_support_cells:
+        return np.zeros_like(observed)
+    floor = float(np.percentile(lowest[near], 10))
+    return near & (lowest <= floor + config.step_tolerance_m)
+
+
+def _lowest_layer(xyz, config: TerrainConfig, x0, y0, nx, ny) -> np.ndarray:
+    """Per cell, the mean height of the returns within `lowest_layer_m` of the cell's
+    lowest (the minimum alone sits ~2 sigma of range noise low); NaN where no return."""
+    c = config.cell_m
+    i = np.floor((xyz[:, 0] - x0) / c).astype(np.int64)
+    j = np.floor((xyz[:, 1] - y0) / c).astype(np.int64)
+    inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+    cell = (i * ny + j)[inside]
+    z = xyz[inside, 2]
+    lowest = np.full(nx * ny, np.inf)
+    np.minimum.at(lowest, cell, z)
+    layer = z <= lowest[cell] + config.lowest_layer_m
+    total = np.bincount(cell[layer], weights=z[layer], minlength=nx * ny)
+    count = np.bincount(cell[layer], minlength=nx * ny)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return mean.reshape(nx, ny)
+
+
+def _grow(lowest, observed, ground, accepted, config: TerrainConfig) -> np.ndarray:
+    """Accept observed cells outwards from the accepted ones. A cell is ground when its
+    lowest layer continues the nearest accepted ground within the slope limit over the
+    distance between them; among neighbouring candidates the lowest go first, so a
+    skirt is judged against the ground beside it, not against ground beyond a gap."""
+    c = config.cell_m
+    pending = observed & ~accepted
+    window = max(3, 2 * round(config.support_radius_m / c) + 1)
+    for _ in range(4 * max(lowest.shape)):
+        gap, (near_i, near_j) = ndimage.distance_transform_edt(~accepted, return_indices=True)
+        gap = gap * c
+        step = lowest - ground[near_i, near_j]
+        allowance = config.step_tolerance_m + config.max_slope * gap
+        take = pending & (gap <= config.max_gap_m) & (np.abs(step) <= allowance)
+        # The lowest first: a candidate more than the tolerance above the lowest
+        # candidate within the support radius waits until that one is ground and it can
+        # be compared (a skirt's ring waits for the trunk's foot inside it).
+        lowest_around = ndimage.minimum_filter(np.where(take, lowest, np.inf), size=window)
+        take &= lowest <= lowest_around + config.step_tolerance_m
+        # Across a gap in the rings' coverage, ground comes as a patch (a ring's arc):
+        # a lone low cell out there is a trunk or a post seen by a level ring.
+        around = ndimage.uniform_filter(take.astype(float), window, mode="constant")
+        support = np.rint(around * window * window) - 1  # the others in the window
+        take &= (gap <= 2 * c) | (support >= config.min_support_cells)
+        if not take.any():
+            break
+        ground = np.where(take, lowest, ground)
+        accepted = accepted | take
+        pending &= ~take
+    return np.where(accepted, ground, np.nan)
+
+
+def _median3(ground: np.ndarray) -> np.ndarray:
+    """Each ground cell as the median of the ground cells in its 3 x 3 neighbourhood: a
+    trunk's or a post's foot in a cell without soil returns sits a few cm up; a median
+    drops such a one-cell bump and keeps slopes and furrows (NaN: not ground)."""
+    padded = np.pad(ground, 1, constant_values=np.nan)
+    nx, ny = ground.shape
+    stack = np.stack(
+        [padded[di : di + nx, dj : dj + ny] for di in range(3) for dj in range(3)], axis=-1
+    )
+    # NaN sorts last: the median of the n finite values is at (n - 1) // 2 (the lower one).
+    ordered = np.sort(stack, axis=-1)
+    count = np.isfinite(stack).sum(axis=-1)
+    middle = np.maximum(count - 1, 0) // 2
+    median = np.take_along_axis(ordered, middle[..., None], axis=-1)[..., 0]
+    return np.where(np.isfinite(ground), median, np.nan)
+
+
+def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float) -> np.ndarray:
+    """Ground under objects and in shadows: a Gaussian-weighted mean of the accepted
+    ground around (normalised convolution), widening until every cell has some."""
+    known = accepted & np.isfinite(ground)
+    values = np.where(known, ground, 0.0)
+    out = np.where(known, ground, np.nan)
+    sigma = sigma_m / cell
+    while np.isnan(out).any():
+        total = ndimage.gaussian_filter(values, sigma, mode="constant", truncate=3.0)
+        weight = ndimage.gaussian_filter(known.astype(float), sigma, mode="constant", truncate=3.0)
+        fill = np.isnan(out) & (weight > 1e-6)
+        out[fill] = total[fill] / weight[fill]
+        if sigma > max(ground.shape):
+            out[np.isnan(out)] = 0.0  # nothing known at all: the footprint's plane
+        sigma *= 2
+    return out

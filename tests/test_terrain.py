@@ -1,0 +1,179 @@
+"""The terrain model on ground shaped as groves are: a VLP-16 scan ray-cast by the twin's
+emulator over a sloped, undulating height field with trees on it, from a robot standing
+level and from a robot pitched and rolled by the slope it stands on."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.pipeline.config import DetectionConfig, TerrainConfig
+from treetraits.pipeline.detection import crop_mask, detect, to_base
+from treetraits.pipeline.terrain import fit_terrain
+from treetraits.sim.lidar import Scene, Vlp16Emulator
+from treetraits.sim.orchard import TreeSpec, tree_mesh
+
+
+@dataclass(frozen=True)
+class RollingGround:
+    """15 % up along x, 8 % across, +-10 cm furrows every 3 m across the rows and a
+    gentle +-5 cm swell along them: the issue's worst case."""
+
+    along: float = 0.15
+    across: float = 0.08
+
+    def height(self, x, y):
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        furrows = 0.10 * np.sin(2 * math.pi * y / 3.0)
+        swell = 0.05 * np.sin(2 * math.pi * x / 7.0 + 1.0)
+        return self.along * x + self.across * y + furrows + swell
+
+
+def height_field(ground, extent=30.0, step=0.25):
+    axis = np.arange(-extent, extent + step / 2, step)
+    xx, yy = np.meshgrid(axis, axis, indexing="ij")
+    vertices = np.column_stack([xx.ravel(), yy.ravel(), ground.height(xx, yy).ravel()])
+    n = len(axis)
+    index = np.arange(n * n).reshape(n, n)
+    a, b = index[:-1, :-1].ravel(), index[1:, :-1].ravel()
+    c, d = index[1:, 1:].ravel(), index[:-1, 1:].ravel()
+    triangles = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    return vertices.astype(np.float32), triangles.astype(np.int32)
+
+
+TREES = (
+    TreeSpec("T1", "1", 5.0, 3.0, 0.45, 0.08, 1.35, 1.1),
+    TreeSpec("T2", "1", 10.0, 3.0, 0.45, 0.08, 1.35, 1.1),
+    TreeSpec("T3", "2", 5.0, -3.0, 0.40, 0.08, 1.30, 1.0),
+    TreeSpec("T4", "2", -6.0, -3.0, 0.40, 0.08, 1.40, 1.2),
+)
+
+
+def rotation(roll: float, pitch: float) -> np.ndarray:
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    return ry @ rx
+
+
+def one_scan(ground, base_from_world_tilt: np.ndarray | None = None):
+    """One VLP-16 scan of the scene from a robot at the origin (yaw 0). With a tilt, the
+    robot stands pitched and rolled: the LiDAR is rotated with it about the footprint."""
+    rng = np.random.default_rng(11)
+    scene = Scene()
+    scene.add(*height_field(ground), label=0)
+    for i, spec in enumerate(TREES):
+        scene.add(*tree_mesh(spec, ground, rng), label=i + 1)
+    mount = DEFAULT_T_BASE_LIDAR.copy()
+    if base_from_world_tilt is not None:
+        mount[:3, :3] = base_from_world_tilt @ mount[:3, :3]
+        mount[:3, 3] = base_from_world_tilt @ mount[:3, 3]
+
+    def standing(t):
+        zeros = np.zeros(t.shape)
+        return zeros, zeros, zeros, zeros
+
+    batcher = ScanBatcher()
+    emulator = Vlp16Emulator(scene, mount, rng=rng)
+    for t_device, payload in emulator.packets(standing, 0, int(0.35e9)):
+        scan = batcher.push(payload, t_device)
+        if scan is not None and scan.complete:
+            return scan
+    raise AssertionError("no complete scan")
+
+
+def ground_truth_in_base(ground, tilt: np.ndarray, x: float, y: float) -> float:
+    """The ground height under (x, y) of the robot's tilted base frame."""
+    z = 0.0
+    for _ in range(20):  # p_world = tilt @ p_base; solve z_world(p) = ground(x_w, y_w)
+        world = tilt @ np.array([x, y, z])
+        z += float(ground.height(world[0], world[1])) - world[2]
+    return z
+
+
+@pytest.mark.parametrize("pitched", [False, True], ids=["level-lidar", "pitched-robot"])
+def test_terrain_follows_slope_and_furrows(pitched):
+    ground = RollingGround()
+    tilt = np.eye(3)
+    if pitched:  # the robot's attitude on this slope: nose up, left side up
+        tilt = rotation(math.atan(ground.across), -math.atan(ground.along))
+    scan = one_scan(ground, tilt if pitched else None)
+    config = DetectionConfig()
+    xyz = to_base(scan.points, DEFAULT_T_BASE_LIDAR)
+    xyz = xyz[crop_mask(xyz, config.crop, DEFAULT_T_BASE_LIDAR[:2, 3])]
+    terrain = fit_terrain(xyz, config.terrain, config.crop.x_m, config.crop.y_m)
+
+    # Every cell taken for ground lies on the true ground: what the model says under the
+    # returns it kept matches the surface to within the range noise and the cell's tilt.
+    centres = [
+        (terrain.x0 + (i + 0.5) * terrain.cell, terrain.y0 + (j + 0.5) * terrain.cell)
+        for i, j in np.argwhere(terrain.ground)
+    ]
+    errors = np.array(
+        [terrain.z_at(x, y) - ground_truth_in_base(ground, tilt, x, y) for x, y in centres]
+    )
+    assert len(errors) > 150
+    # Measured: RMS 4.6 cm (level LiDAR) and 3.8 cm (pitched robot); the worst cells,
+    # 0.24-0.28 m, hold a trunk's foot and no soil.
+    assert np.sqrt(np.mean(errors**2)) < 0.09
+    assert np.abs(errors).max() < 0.5
+
+    # Under each trunk the terrain is the ground, not the skirt: the tree's height
+    # rests on it. Measured: within 0.15 m on both robots (a trunk's foot).
+    for spec in TREES:
+        x, y = spec.x, spec.y
+        if pitched:
+            x, y, _ = np.linalg.solve(tilt, np.array([spec.x, spec.y, ground.height(x, y)]))
+        truth = ground_truth_in_base(ground, tilt, x, y)
+        assert terrain.z_at(x, y) == pytest.approx(truth, abs=0.3), spec.tree_id
+
+
+@pytest.mark.parametrize("pitched", [False, True], ids=["level-lidar", "pitched-robot"])
+def test_each_tree_is_one_cluster_and_no_ground_clusters(pitched):
+    ground = RollingGround()
+    tilt = rotation(math.atan(ground.across), -math.atan(ground.along)) if pitched else None
+    scan = one_scan(ground, tilt)
+    detection = detect(scan.points, None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
+    tall = [c for c in detection.clusters if c.points[:, 2].max() - c.ground_z > 0.5]
+    # One cluster per tree, 1.2-2.8 m tall (crowns of 2.3-2.8 m, seen by one scan);
+    # measured: no other cluster on the pitched robot, and on the level LiDAR two slivers
+    # of upslope ground 11 m out, 0.3-0.4 m tall (the classifier's height rule's job).
+    assert len(tall) == len(TREES)
+    for spec in TREES:
+        near = [c for c in tall if math.hypot(c.centroid[0] - spec.x, c.centroid[1] - spec.y) < 2]
+        assert len(near) == 1, spec.tree_id
+    if pitched:
+        assert len(detection.clusters) == len(TREES)
+
+    # The ground under each tree's cluster: measured within 0.15 m.
+    frame = tilt if pitched else np.eye(3)
+
+    def ground_errors(clusters):
+        return [
+            abs(c.ground_z - ground_truth_in_base(ground, frame, *c.centroid[:2])) for c in clusters
+        ]
+
+    assert max(ground_errors(tall)) < 0.3
+
+
+def test_flat_ground_without_returns_near_the_robot_is_the_footprint():
+    """No return at all (a blind scan): the terrain is the footprint's plane, z = 0."""
+    terrain = fit_terrain(np.zeros((0, 3)), TerrainConfig(), (-15, 15), (-15, 15))
+    assert terrain.z_at(3.0, -7.0) == 0.0 and terrain.ground_cells == 0
+
+
+def test_a_lone_low_return_across_a_gap_is_not_ground():
+    """A post's foot 10 m out, hit by a level ring with no ground around it, is not taken
+    for ground: the ground there is the ground around the robot carried out."""
+    rng = np.random.default_rng(3)
+    angle = rng.uniform(0, 2 * math.pi, 4000)
+    radius = rng.choice([1.5, 1.7, 2.1, 2.5, 3.3, 4.6], 4000)
+    near = np.column_stack([radius * np.cos(angle), radius * np.sin(angle), np.zeros(4000)])
+    post = np.column_stack([np.full(30, 10.0), np.full(30, 0.0), np.linspace(0.3, 1.5, 30)])
+    terrain = fit_terrain(np.vstack([near, post]), TerrainConfig(), (-15, 15), (-15, 15))
+    assert terrain.z_at(10.0, 0.0) == pytest.approx(0.0, abs=0.02)
