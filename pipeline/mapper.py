@@ -17,6 +17,7 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
 from treetraits.pipeline.config import MapperConfig
 from treetraits.pipeline.detection import Cluster, GroundPlane, StageClock, detect
+from treetraits.pipeline.localization.attitude import rotation_zyx
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
 from treetraits.pipeline.tracking import Motion, Tracker, motion_transform
@@ -232,9 +233,8 @@ class TreeMapper:
             )
         if pose is not None:
             self._last_t = t
-            c, s = np.cos(pose.yaw), np.sin(pose.yaw)
             out = np.eye(4)
-            out[:2, :2] = [[c, -s], [s, c]]
+            out[:3, :3] = rotation_zyx(pose.roll, pose.pitch, pose.yaw)
             out[:3, 3] = (pose.x, pose.y, pose.z)
             return out
         # No pose: the map is the LiDAR frame of this scan; move the trees by the motion.
