@@ -188,3 +188,18 @@ def test_attitude_at_interpolates_between_samples():
 def test_bad_settings_are_named(key, value):
     with pytest.raises(ConfigError, match=f"localization.{key}"):
         LocalizationConfig(**{key: value})
+
+
+def test_the_mapper_places_the_base_with_roll_and_pitch():
+    from treetraits.drivers.records import Pose
+    from treetraits.pipeline.mapper import TreeMapper
+
+    pose = Pose(0, 1.0, 2.0, 0.3, np.zeros((3, 3)), "utm", z=0.5, roll=0.1, pitch=-0.2)
+    t_map_base = TreeMapper()._map_from_base(pose, None, 0)
+    np.testing.assert_allclose(t_map_base[:3, :3], rotation_zyx(0.1, -0.2, 0.3), atol=1e-12)
+    np.testing.assert_allclose(t_map_base[:3, 3], (1.0, 2.0, 0.5))
+    # A point 1 m up the robot's mast leans with the roll (left side up: mast to the right).
+    top = t_map_base @ np.array([0.0, 0.0, 1.0, 1.0])
+    assert top[2] == pytest.approx(0.5 + math.cos(0.1) * math.cos(-0.2))
+    right = np.array([math.sin(0.3), -math.cos(0.3)])  # the robot's right, in the map
+    assert (top[:2] - (1.0, 2.0)) @ right == pytest.approx(math.sin(0.1))
