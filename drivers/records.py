@@ -110,10 +110,12 @@ class WheelSample:
 
 @dataclass(frozen=True, slots=True)
 class Pose:
-    """x, y (, z) and yaw of `base_link` in `frame` at `t` (ns since the Unix epoch).
+    """x, y (, z), yaw (, roll, pitch) of `base_link` in `frame` at `t` (ns since the epoch).
 
-    yaw: radians, counter-clockwise from the frame's x axis (east in `utm`). `covariance`
-    is the 3x3 covariance of (x, y, yaw).
+    yaw: radians, counter-clockwise from the frame's x axis (east in `utm`). roll and pitch
+    (radians, REP-103): roll about the robot's x (forward; positive = left side up), pitch
+    about its y (left; positive = nose down), applied as R = Rz(yaw) Ry(pitch) Rx(roll);
+    0 where no IMU gives them. `covariance` is the 3x3 covariance of (x, y, yaw).
     """
 
     t: int
@@ -123,6 +125,8 @@ class Pose:
     covariance: np.ndarray
     frame: str
     z: float = 0.0
+    roll: float = 0.0
+    pitch: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

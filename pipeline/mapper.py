@@ -18,6 +18,7 @@ from treetraits.drivers.records import Frame, Pose, Scan
 from treetraits.pipeline.classify import Votes
 from treetraits.pipeline.config import MapperConfig
 from treetraits.pipeline.detection import Cluster, GroundModel, StageClock, detect
+from treetraits.pipeline.localization.attitude import rotation_zyx
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
 from treetraits.pipeline.tracking import Motion, Tracker, motion_transform
@@ -238,9 +239,8 @@ class TreeMapper:
             )
         if pose is not None:
             self._last_t = t
-            c, s = np.cos(pose.yaw), np.sin(pose.yaw)
             out = np.eye(4)
-            out[:2, :2] = [[c, -s], [s, c]]
+            out[:3, :3] = rotation_zyx(pose.roll, pose.pitch, pose.yaw)
             out[:3, 3] = (pose.x, pose.y, pose.z)
             return out
         # No pose: the map is the LiDAR frame of this scan; move the trees by the motion.
@@ -296,7 +296,9 @@ class TreeMapper:
         if outline:  # both methods keep the outline in the world frame (its centre)
             world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
             world = world[_nearest_is(world[:, :2], tree_id, centres)]
-            ground_world = cluster.ground_z + traits_from_base[2, 3]
+            # The ground under the cluster, carried into the world with the full attitude.
+            foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
+            ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
         tree.traits.observe(cluster.points, cluster.ring, cluster.ground_z, world, ground_world)
         if np.isfinite(cluster.ndvi):
             tree.ndvi_sum += cluster.ndvi * len(cluster.points)

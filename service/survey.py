@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -36,9 +36,12 @@ from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.drivers.records import Fix, Frame, Pose, Scan, WheelSample
 from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.firmware_bridge.jackal.records import JackalImu
 from treetraits.firmware_bridge.jackal.session import JackalProtocol
 from treetraits.firmware_bridge.retrofit.reader import BridgeDecoder
+from treetraits.pipeline.deskew import deskew_scan
 from treetraits.pipeline.localization import LocalizationConfig, Localizer
+from treetraits.pipeline.localization.attitude import AttitudeFilter, rotation_zyx
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
 
@@ -51,6 +54,9 @@ FRAME_SILENCE_NS = 1_000_000_000
 # for good (trees are georeferenced at the end if a fix ever comes).
 DATUM_WAIT_NS = 10_000_000_000  # 100 scans held at most (~85 MB of points)
 FRAME_BUFFER = 30  # frames kept (3 s at 10 Hz)
+# An IMU silent for this long is not waited for (a Jackal recording without IMU, a link
+# that dropped it); roll and pitch are then those of the last samples, or 0.
+IMU_SILENCE_NS = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -70,6 +76,8 @@ class SurveyStats:
     frames: int = 0
     fixes: int = 0
     wheel_samples: int = 0
+    imu_samples: int = 0
+    scans_deskewed: int = 0
     unknown_topics: int = 0
     counters: dict[str, int] = field(default_factory=dict)
 
@@ -85,6 +93,9 @@ class SurveyProcessor:
         self.mapper = mapper
         self.calibration = calibration
         self.localizer = Localizer(localization, calibration.wheels, calibration.T_base_gnss)
+        # Roll and pitch from the Jackal MCU's IMU (its frame taken as base_link).
+        self.attitude = AttitudeFilter(self.localizer.config)
+        self._imu_seen: int | None = None  # log_time of the newest IMU sample
         self.stats = SurveyStats()
         self._batcher = ScanBatcher(model=lidar_model)
         self._splitter = SentenceSplitter()
@@ -118,14 +129,19 @@ class SurveyProcessor:
         elif topic == rec.WHEELS_JACKAL:
             for record in self._mcu.receive(data, log_time, log_time / 1e9):
                 if isinstance(record, WheelSample):
-                    self.stats.wheel_samples += 1
-                    self.localizer.add_wheels(record)
+                    self._add_wheels(record)
+                elif isinstance(record, JackalImu):
+                    # On t_host like the wheels (the header stamp is the MCU's clock).
+                    self.stats.imu_samples += 1
+                    self._imu_seen = log_time
+                    self.attitude.add_imu(
+                        record.t_host, record.angular_velocity, record.linear_acceleration
+                    )
             self._mcu.take_outgoing()  # a recording cannot answer the MCU
         elif topic == rec.WHEELS_BRIDGE:
             for record in self._bridge.push(data, log_time):
                 if isinstance(record, WheelSample):  # ticks: the localizer converts them
-                    self.stats.wheel_samples += 1
-                    self.localizer.add_wheels(record)
+                    self._add_wheels(record)
         elif topic == rec.LIDAR_TELEMETRY:
             pass  # the VLP-16's own GPS input: not used for the pose
         else:
@@ -139,6 +155,13 @@ class SurveyProcessor:
         if (scan := self._batcher.flush()) is not None:
             self._pending.append(scan)
         return self._ready(end_of_input=True)
+
+    def _add_wheels(self, sample: WheelSample) -> None:
+        self.stats.wheel_samples += 1
+        self.localizer.add_wheels(sample)
+        # The wheels' speed lets the attitude filter take the robot's own acceleration
+        # out of the accelerometer, and tells it when the robot stands still.
+        self.attitude.add_speed(sample.t_host, self.localizer.speed)
 
     def _add_fix(self, fix: Fix) -> None:
         self.stats.fixes += 1
@@ -156,7 +179,11 @@ class SurveyProcessor:
 
     def pose_at(self, t: int) -> Pose | None:
         """The pose in the run's world frame at `t`, as a scan with its middle at `t` gets
-        it (before the first fix, the odometry pose carried into utm at the datum)."""
+        it (before the first fix, the odometry pose carried into utm at the datum), with
+        roll and pitch from the IMU (0 without one)."""
+        return self._with_attitude(self._planar_pose_at(t))
+
+    def _planar_pose_at(self, t: int) -> Pose | None:
         if self.world_frame == "odom":
             return self.localizer.pose_at(t, "odom")
         pose = self.localizer.pose_at(t)
@@ -170,6 +197,42 @@ class SurveyProcessor:
         x, y, _ = transform @ np.array([odom.x, odom.y, 1.0])
         yaw = odom.yaw + math.atan2(transform[1, 0], transform[0, 0])
         return Pose(t, float(x), float(y), wrap_angle(yaw), odom.covariance, "utm")
+
+    def _with_attitude(self, pose: Pose | None) -> Pose | None:
+        if pose is None:
+            return None
+        attitude = self.attitude.attitude_at(pose.t)
+        if attitude is None:
+            return pose  # no IMU (or none yet at that time): level, roll = pitch = 0
+        return replace(pose, roll=attitude[0], pitch=attitude[1])
+
+    def _deskewed(self, scan: Scan, middle: int) -> Scan:
+        """The scan de-skewed to its middle with the poses across its sweep (`odom` while
+        wheels come in: smooth, where a `utm` pose jumps at each fix; else the run's world
+        frame), as it is when there are none or deskew is off."""
+        if not self.localizer.config.deskew or len(scan.points) == 0:
+            return scan
+        step = round(self.localizer.config.deskew_step_s * 1e9)
+        start = scan.t_host - (scan.t_end - scan.t_start)
+        times = [*range(start, scan.t_host, step), scan.t_host]
+        odom = self.stats.wheel_samples > 0
+        kept_times, poses = [], []
+        for t in times:
+            pose = self.localizer.pose_at(t, "odom") if odom else self._planar_pose_at(t)
+            if pose is None:
+                continue
+            pose = self._with_attitude(pose)
+            matrix = np.eye(4)
+            matrix[:3, :3] = rotation_zyx(pose.roll, pose.pitch, pose.yaw)
+            matrix[:3, 3] = (pose.x, pose.y, pose.z)
+            kept_times.append(t)
+            poses.append(matrix)
+        if len(poses) < 2:
+            return scan
+        self.stats.scans_deskewed += 1
+        return deskew_scan(
+            scan, np.array(kept_times), np.array(poses), middle, self.calibration.T_base_lidar
+        )
 
     def _mappable(self, pose: Pose | None) -> bool:
         """The mapper holds its trees in one frame, fixed by the first scan it maps: a scan
@@ -186,17 +249,24 @@ class SurveyProcessor:
         limit = self.localizer.config.known_yaw_sigma_rad
         return float(pose.covariance[2, 2]) <= limit * limit
 
-    def _settled(self, middle: int) -> bool:
-        """The scan with this middle gets the pose and frame it would get later (or has
-        waited POSE_WAIT_NS for them)."""
+    def _settled(self, scan: Scan) -> bool:
+        """The scan gets the pose (and, de-skewed, the poses across its sweep), attitude
+        and frame it would get later (or has waited POSE_WAIT_NS past its middle)."""
+        middle = scan_mid_time(scan)
         if self._latest - middle >= POSE_WAIT_NS:
             return True
+        # De-skew needs the poses up to the scan's last firing, not only its middle.
+        until = scan.t_host if self.localizer.config.deskew else middle
         settled = self.localizer.settled_until("odom")
-        if settled is None or settled < middle:
+        if settled is None or settled < until:
             return False
         if self.world_frame == "utm":
             settled = self.localizer.settled_until("utm")
-            if settled is None or settled < middle:
+            if settled is None or settled < until:
+                return False
+        if self._imu_seen is not None and self._latest - self._imu_seen <= IMU_SILENCE_NS:
+            settled = self.attitude.settled_until()
+            if settled is None or settled < until:
                 return False
         if self._frame_seen is None or self._latest - self._frame_seen > FRAME_SILENCE_NS:
             return True  # no camera to wait for
@@ -206,7 +276,7 @@ class SurveyProcessor:
         out = []
         if not self._choose_frame(end_of_input):
             return out
-        while self._pending and (end_of_input or self._settled(scan_mid_time(self._pending[0]))):
+        while self._pending and (end_of_input or self._settled(self._pending[0])):
             scan = self._pending.popleft()
             middle = scan_mid_time(scan)
             pose = self.pose_at(middle)
@@ -221,6 +291,8 @@ class SurveyProcessor:
                 self.stats.scans_skipped += 1
                 continue
             frame = min(self._frames, key=lambda f: abs(f.t_capture - middle), default=None)
+            if pose is not None:
+                scan = self._deskewed(scan, middle)
             result = self.mapper.process(scan, frame, pose)
             self.stats.scans += 1
             out.append(ScanOutcome(scan, pose, frame, result))

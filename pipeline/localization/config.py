@@ -56,6 +56,43 @@ class LocalizationConfig:
     # Pose history kept for `pose_at`, seconds.
     history_s: float = 30.0
 
+    # Roll and pitch from the IMU (pipeline/localization/attitude.py, docs/localization.md).
+
+    # Time constant of the complementary filter, seconds: a tilt error of the gyro (its
+    # bias, a missed rate) decays with it, and the accelerometer's vibration is averaged
+    # over it. 1 s averages ~50 samples of a grove floor's shaking (a 1 m/s^2 vibration
+    # leaves ~0.5 deg) and keeps a 0.01 rad/s bias to 0.6 deg, while the gyro itself
+    # follows a change of slope as it happens.
+    attitude_time_constant_s: float = 1.0
+    # An accelerometer sample corrects the attitude only if, once the acceleration the
+    # wheels explain is taken out, its magnitude is within this of g (m/s^2): more is a
+    # shock (a root or a pothole: 0.5-1 g for a sample or two). The floor's ordinary
+    # shaking (~1 m/s^2, zero mean) is averaged by the filter and let through; a
+    # horizontal acceleration a changes the magnitude only by a^2/2g, so the gate cannot
+    # see one: that is why the acceleration the wheels know of is taken out first.
+    attitude_accel_gate_mps2: float = 2.0
+    # Gyro bias learning: while the robot stands still the gyro reads its bias alone,
+    # averaged over this many seconds (a MEMS bias wanders over minutes with temperature;
+    # 5 s of rest average its noise below 0.001 rad/s).
+    gyro_bias_time_constant_s: float = 5.0
+    # While driving, the bias of the roll and pitch axes is learned from the tilt error
+    # the accelerometer keeps correcting, over this many seconds: slow against the filter's
+    # 1 s, so a turn the wheels mis-explain for a few seconds teaches it little.
+    gyro_bias_motion_time_constant_s: float = 20.0
+    # At rest means: the wheels slower than this (m/s) and every gyro axis below this
+    # (rad/s; 3 deg/s, above a MEMS gyro's bias, below any real turn). Without wheel data
+    # the gyro alone decides.
+    rest_speed_mps: float = 0.02
+    gyro_rest_rad_s: float = 0.05
+
+    # De-skew each scan with the motion during its sweep: a 100 ms rotation at 2 m/s
+    # while turning at 0.5 rad/s smears a wall 10 m away by 20 cm and bends it by 0.5 m.
+    deskew: bool = True
+    # Poses are sampled across the sweep this often (seconds) and interpolated per point:
+    # at 1 rad/s the pose changes by 10 mrad in 10 ms, which a straight line follows to
+    # well below a millimetre.
+    deskew_step_s: float = 0.01
+
     def __post_init__(self) -> None:
         positive = (
             "odom_sigma_per_sqrt_m",
@@ -68,6 +105,13 @@ class LocalizationConfig:
             "known_yaw_sigma_rad",
             "initial_yaw_sigma_rad",
             "history_s",
+            "attitude_time_constant_s",
+            "attitude_accel_gate_mps2",
+            "gyro_bias_time_constant_s",
+            "gyro_bias_motion_time_constant_s",
+            "rest_speed_mps",
+            "gyro_rest_rad_s",
+            "deskew_step_s",
         )
         for name in positive:
             value = getattr(self, name)
@@ -76,6 +120,13 @@ class LocalizationConfig:
         for name in ("cog_min_speed_mps", "cog_max_yaw_rate"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"localization.{name} must be >= 0")
+        if not isinstance(self.deskew, bool):
+            raise ConfigError(f"localization.deskew must be true or false, got {self.deskew!r}")
+        if self.deskew_step_s > 0.05:
+            raise ConfigError(
+                "localization.deskew_step_s must be <= 0.05 (two poses per 100 ms sweep at "
+                f"least), got {self.deskew_step_s}"
+            )
         if self.max_rejected_in_a_row < 1:
             raise ConfigError("localization.max_rejected_in_a_row must be >= 1")
         for quality, sigma in self.sigma_per_hdop.items():

@@ -249,6 +249,11 @@ class Localizer:
         return None
 
     @property
+    def speed(self) -> float:
+        """The forward speed of the latest wheel step (m/s; 0 before two samples)."""
+        return self._motion.speed
+
+    @property
     def heading_known(self) -> bool:
         return (
             self._filter is not None and self._filter.yaw_sigma <= self.config.known_yaw_sigma_rad
