@@ -78,6 +78,10 @@ class Survey3Emulator:
         reflectance[label == 0] = SOIL
         reflectance[label > 0] = FOLIAGE
         reflectance[label < 0] = SKY
+        index, found = self.scene.material_index(label)
+        if found.any():
+            own = np.array([mat.reflectance for mat in self.scene.materials.values()])
+            reflectance[found] = own[index[found]]
         image = np.zeros((len(label), 3))
         for band, column in (("red", 0), ("green", 1), ("nir", 2)):
             if band not in camera.channels:

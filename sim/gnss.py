@@ -123,16 +123,38 @@ class GnssEmulator:
         self.rng = rng or np.random.default_rng(0)
 
     def epoch(
-        self, t_s: float, utc: dt.datetime, x: float, y: float, yaw: float, speed: float
+        self,
+        t_s: float,
+        utc: dt.datetime,
+        x: float,
+        y: float,
+        yaw: float,
+        speed: float,
+        attitude: tuple[float, float, float] | None = None,
     ) -> list[bytes]:
+        """`attitude` (z, pitch, roll) of the base on uneven ground: the antenna's lever
+        arm turns with the robot's tilt and its height follows the ground (None: level, at
+        z = 0, the paper's twin)."""
         s = self.settings
         if any(start <= t_s < end for start, end in s.outages):
             return []  # no sentences at all: the receiver lost the sky (or its link)
         quality = s.quality
         sigma = QUALITY_SIGMA_M[quality]
         c, si = math.cos(yaw), math.sin(yaw)
-        east = self.origin[0] + x + c * self.lever[0] - si * self.lever[1]
-        north = self.origin[1] + y + si * self.lever[0] + c * self.lever[1]
+        if attitude is None:
+            lever = self.lever
+        else:
+            from treetraits.sim.lidar import rotation_matrices
+
+            z, pitch, roll = attitude
+            lever = rotation_matrices(yaw, pitch, roll)[0] @ self.lever
+            # Back into the yaw-only form below: the tilted lever, expressed along the
+            # heading, plus the ground's height.
+            lever = np.array(
+                [c * lever[0] + si * lever[1], -si * lever[0] + c * lever[1], lever[2] + z]
+            )
+        east = self.origin[0] + x + c * lever[0] - si * lever[1]
+        north = self.origin[1] + y + si * lever[0] + c * lever[1]
         east += self.rng.normal(0, sigma)
         north += self.rng.normal(0, sigma)
         lat, lon = self.grid.inverse(east, north)
@@ -142,5 +164,5 @@ class GnssEmulator:
         if s.dual_antenna:
             heading = true_heading + self.rng.normal(0, s.heading_sigma_deg)
         course = (true_heading + self.rng.normal(0, 1.0)) % 360.0
-        altitude = 300.0 + self.lever[2] + self.rng.normal(0, 2 * sigma)
+        altitude = 300.0 + lever[2] + self.rng.normal(0, 2 * sigma)
         return epoch_sentences(utc, lat, lon, altitude, quality, s, course, speed, heading, sigma)

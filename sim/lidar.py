@@ -21,8 +21,9 @@ import open3d as o3d
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne.encode import encode_packets
 
-# Pose of base_link in the world at times t (ns array): returns x, y, z, yaw arrays.
-Trajectory = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+# Pose of base_link in the world at times t (ns array): x, y, z, yaw arrays, optionally
+# followed by pitch and roll (REP-103, R = Rz(yaw) Ry(pitch) Rx(roll); absent = level).
+Trajectory = Callable[[np.ndarray], tuple[np.ndarray, ...]]
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,25 @@ class LidarSettings:
     optics: m.LaserModel = m.VLP16
 
 
+@dataclass(frozen=True)
+class Material:
+    """What a surface looks like to the sensors: VLP-16 calibrated reflectivity (0-100,
+    diffuse targets) and the camera's red, green and NIR reflectance (0-1)."""
+
+    reflectivity: int
+    reflectance: tuple[float, float, float]
+
+
+class Walk(Protocol):
+    """A rigid mesh translated over time (`sim.clutter.WalkingPath`): at time t its point
+    q is at q + offset(t)."""
+
+    centre: tuple[float, float]  # x, y the motion stays about
+    reach: float  # m: the farthest any point of the mesh gets from `centre` (x-y)
+
+    def offset(self, t_s: np.ndarray) -> np.ndarray: ...  # (N, 3)
+
+
 class Sway(Protocol):
     """A mesh bending about its base in the wind (`sim.orchard.TreeSway`)."""
 
@@ -46,7 +66,12 @@ class Sway(Protocol):
 
 
 class Scene:
-    """Triangle meshes in the world frame with a label per mesh (0 = ground).
+    """Triangle meshes in the world frame with a label per mesh (0 = ground). A label may
+    have a `Material` (`materials`); without one, 0 looks like soil and the rest like
+    foliage.
+
+    A mesh added with a `walk` is translated by `walk.offset(t)` at time t: each ray is
+    moved back by that offset and cast against the mesh's own scene, as for a sway.
 
     A mesh added with a `sway` moves: at time t its point q is at
     q + shear(t) * (q_z - base_z) (horizontal). A shear maps straight lines to straight
@@ -56,24 +81,52 @@ class Scene:
     def __init__(self) -> None:
         self._scene = o3d.t.geometry.RaycastingScene()
         self._labels: list[int] = []
-        # (own scene, label, sway, reach: horizontal radius about the base it can occupy)
-        self._moving: list[tuple[o3d.t.geometry.RaycastingScene, int, Sway, float]] = []
+        # (own scene, label, sway or walk, x-y centre, reach: horizontal radius about the
+        # centre it can occupy)
+        self._moving: list[
+            tuple[o3d.t.geometry.RaycastingScene, int, Sway | Walk, tuple[float, float], float]
+        ] = []
+        self.materials: dict[int, Material] = {}
 
     def add(
-        self, vertices: np.ndarray, triangles: np.ndarray, label: int, sway: Sway | None = None
+        self,
+        vertices: np.ndarray,
+        triangles: np.ndarray,
+        label: int,
+        sway: Sway | None = None,
+        walk: Walk | None = None,
+        material: Material | None = None,
     ) -> None:
         mesh = o3d.t.geometry.TriangleMesh()
         mesh.vertex.positions = o3d.core.Tensor(np.asarray(vertices, dtype=np.float32))
         mesh.triangle.indices = o3d.core.Tensor(np.asarray(triangles, dtype=np.int32))
-        if sway is not None:
+        if material is not None:
+            self.materials[label] = material
+        if sway is not None or walk is not None:
             own = o3d.t.geometry.RaycastingScene()
             own.add_triangles(mesh)
-            spread = np.hypot(*(np.asarray(vertices)[:, :2] - sway.base[:2]).T).max()
-            self._moving.append((own, label, sway, float(spread) + sway.max_offset + 0.05))
+            if sway is not None:
+                centre = (float(sway.base[0]), float(sway.base[1]))
+                spread = np.hypot(*(np.asarray(vertices)[:, :2] - centre).T).max()
+                reach = float(spread) + sway.max_offset + 0.05
+                self._moving.append((own, label, sway, centre, reach))
+            else:
+                self._moving.append((own, label, walk, walk.centre, walk.reach + 0.05))
             return
         geometry_id = self._scene.add_triangles(mesh)
         assert geometry_id == len(self._labels)
         self._labels.append(label)
+
+    def material_index(self, label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each label, its index in `materials` (in insertion order) and whether it has
+        one."""
+        if not self.materials:
+            return np.zeros(label.shape, dtype=np.int64), np.zeros(label.shape, dtype=bool)
+        keys = np.fromiter(self.materials, dtype=np.int64)
+        order = np.argsort(keys)
+        position = np.clip(np.searchsorted(keys[order], label), 0, len(keys) - 1)
+        index = order[position]
+        return index, keys[index] == label
 
     @property
     def moving(self) -> bool:
@@ -96,9 +149,9 @@ class Scene:
         t_s = np.broadcast_to(np.asarray(t_ns, dtype=np.float64) / 1e9, (len(origins),))
         origins = np.asarray(origins, dtype=np.float64)
         directions = np.asarray(directions, dtype=np.float64)
-        for own, mesh_label, sway, reach in self._moving:
-            # Only the rays passing within reach of the tree's axis (in x-y) can hit it.
-            axis = np.asarray(sway.base[:2]) - origins[:, :2]
+        for own, mesh_label, motion, centre, reach in self._moving:
+            # Only the rays passing within reach of the mesh's axis (in x-y) can hit it.
+            axis = np.asarray(centre) - origins[:, :2]
             flat = directions[:, :2]
             along = np.clip(
                 (axis * flat).sum(axis=1) / np.maximum((flat * flat).sum(axis=1), 1e-12), 0, None
@@ -107,9 +160,12 @@ class Scene:
             if not near.any():
                 continue
             o, d = origins[near], directions[near]
-            shear = sway.shear(t_s[near])  # (n, 2)
-            o[:, :2] -= shear * (o[:, 2:3] - sway.base[2])
-            d[:, :2] -= shear * d[:, 2:3]
+            if hasattr(motion, "shear"):
+                shear = motion.shear(t_s[near])  # (n, 2)
+                o[:, :2] -= shear * (o[:, 2:3] - motion.base[2])
+                d[:, :2] -= shear * d[:, 2:3]
+            else:
+                o -= motion.offset(t_s[near])
             rays = np.hstack([o, d]).astype(np.float32)
             t_hit = own.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
             closer = t_hit < distance[near]
@@ -178,8 +234,7 @@ class Vlp16Emulator:
         origin = np.zeros_like(direction)
         origin[:, 2] = np.broadcast_to(self._vertical_offset, t_fire.shape).reshape(-1)
 
-        x, y, z, yaw = trajectory(t_fire.reshape(-1))
-        world_from_base = _poses(x, y, z, yaw)  # (N, 4, 4)
+        world_from_base = _poses(*trajectory(t_fire.reshape(-1)))  # (N, 4, 4)
         world_from_lidar = world_from_base @ self.T_base_lidar
         rotation, translation = world_from_lidar[:, :3, :3], world_from_lidar[:, :3, 3]
         origins = np.einsum("nij,nj->ni", rotation, origin) + translation
@@ -195,7 +250,12 @@ class Vlp16Emulator:
         )
         units = np.where(keep, np.round(distance / m.DISTANCE_UNIT_M), 0).astype(np.uint16)
         ground, tree = s.reflectivity_by_label
-        reflectivity = np.where(label == 0, ground, tree) + self.rng.integers(-3, 4, label.shape)
+        base = np.where(label == 0, ground, tree)
+        index, found = self.scene.material_index(label)
+        if found.any():
+            own = np.array([mat.reflectivity for mat in self.scene.materials.values()])
+            base = np.where(found, own[index], base)
+        reflectivity = base + self.rng.integers(-3, 4, label.shape)
         reflectivity = np.where(keep, np.clip(reflectivity, 0, 100), 0).astype(np.uint8)
 
         block_azimuth = np.round(np.degrees(self._rotor_angle(block_start)) * 100).astype(int)
@@ -207,10 +267,32 @@ class Vlp16Emulator:
         )
 
 
-def _poses(x, y, z, yaw) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
+def _poses(x, y, z, yaw, pitch=None, roll=None) -> np.ndarray:
+    """world_from_base (N, 4, 4) of R = Rz(yaw) Ry(pitch) Rx(roll) and (x, y, z)."""
+    x = np.atleast_1d(np.asarray(x, dtype=float))
     out = np.zeros((len(x), 4, 4))
-    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
-    out[:, 2, 2] = out[:, 3, 3] = 1.0
+    out[:, 3, 3] = 1.0
+    out[:, :3, :3] = rotation_matrices(yaw, pitch, roll, len(x))
     out[:, 0, 3], out[:, 1, 3], out[:, 2, 3] = x, y, z
     return out
+
+
+def rotation_matrices(yaw, pitch=None, roll=None, n: int | None = None) -> np.ndarray:
+    """(N, 3, 3) rotations Rz(yaw) Ry(pitch) Rx(roll); pitch and roll None = level."""
+    yaw = np.atleast_1d(np.asarray(yaw, dtype=float))
+    n = len(yaw) if n is None else n
+    yaw = np.broadcast_to(yaw, (n,))
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.zeros((n, 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+    out[:, 2, 2] = 1.0
+    if pitch is None and roll is None:
+        return out  # exactly the level rotation (the paper's flat twin)
+    p = np.broadcast_to(np.asarray(0.0 if pitch is None else pitch, dtype=float), (n,))
+    r = np.broadcast_to(np.asarray(0.0 if roll is None else roll, dtype=float), (n,))
+    cp, sp, cr, sr = np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    ry = np.zeros((n, 3, 3))
+    ry[:, 0, 0], ry[:, 0, 2], ry[:, 1, 1], ry[:, 2, 0], ry[:, 2, 2] = cp, sp, 1, -sp, cp
+    rx = np.zeros((n, 3, 3))
+    rx[:, 0, 0], rx[:, 1, 1], rx[:, 1, 2], rx[:, 2, 1], rx[:, 2, 2] = 1, cr, -sr, sr, cr
+    return out @ ry @ rx

@@ -117,7 +117,8 @@ def _densify(points: np.ndarray, step: float) -> np.ndarray:
 
 
 def trajectory_function(poses: np.ndarray, t0_ns: int):
-    """A `sim.lidar.Trajectory`: the pose at device times (ns), interpolated."""
+    """A `sim.lidar.Trajectory`: the pose at device times (ns), interpolated (x, y, z = 0,
+    yaw; level). `riding_trajectory` puts it on the ground."""
     times = poses[:, 0]
     yaw = np.unwrap(poses[:, 3])
 
@@ -126,5 +127,48 @@ def trajectory_function(poses: np.ndarray, t0_ns: int):
         x = np.interp(t, times, poses[:, 1])
         y = np.interp(t, times, poses[:, 2])
         return x, y, np.zeros_like(x), np.interp(t, times, yaw)
+
+    return at
+
+
+# The Jackal's wheel contact points (Clearpath Jackal: wheelbase 0.262 m, track 0.376 m):
+# the robot rests on the ground under these four points.
+JACKAL_WHEELBASE_M = 0.262
+JACKAL_TRACK_M = 0.376
+
+
+def attitude_on(ground, x, y, yaw, wheelbase=JACKAL_WHEELBASE_M, track=JACKAL_TRACK_M):
+    """(z, pitch, roll) of a robot at (x, y, yaw) resting on `ground` (anything with a
+    vectorised `height(x, y)`): the plane through the ground under its four wheels (least
+    squares; their mean height is z, the base_footprint on that plane). REP-103 angles:
+    pitch about the body's y (positive = nose down), roll about its x (positive = left side
+    up), applied as R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    x, y, yaw = (np.asarray(v, dtype=float) for v in (x, y, yaw))
+    c, s = np.cos(yaw), np.sin(yaw)
+    h = {}
+    for fx, fy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):  # front/rear, left/right
+        dx, dy = fx * wheelbase / 2, fy * track / 2
+        h[fx, fy] = ground.height(x + c * dx - s * dy, y + s * dx + c * dy)
+    z = (h[1, 1] + h[1, -1] + h[-1, 1] + h[-1, -1]) / 4
+    # The plane's gradient in the heading-aligned frame (forward, left).
+    g_forward = (h[1, 1] + h[1, -1] - h[-1, 1] - h[-1, -1]) / (2 * wheelbase)
+    g_left = (h[1, 1] + h[-1, 1] - h[1, -1] - h[-1, -1]) / (2 * track)
+    # The body's z axis is the plane's normal (-g_forward, -g_left, 1) / n; with
+    # R = Ry(pitch) Rx(roll) that axis is (sin p cos r, -sin r, cos p cos r).
+    norm = np.sqrt(1 + g_forward**2 + g_left**2)
+    pitch = -np.arctan(g_forward)
+    roll = np.arcsin(np.clip(g_left / norm, -1, 1))
+    return z, pitch, roll
+
+
+def riding_trajectory(poses: np.ndarray, t0_ns: int, ground):
+    """A full 6-DoF `sim.lidar.Trajectory` (x, y, z, yaw, pitch, roll): the planar drive
+    with the robot resting on `ground` (`attitude_on`)."""
+    planar = trajectory_function(poses, t0_ns)
+
+    def at(t_ns: np.ndarray):
+        x, y, _, yaw = planar(t_ns)
+        z, pitch, roll = attitude_on(ground, x, y, yaw)
+        return x, y, z, yaw, pitch, roll
 
     return at

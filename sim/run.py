@@ -21,20 +21,31 @@ import numpy as np
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration, load_calibration
 from treetraits.sim.camera import CameraSettings, Survey3Emulator
+from treetraits.sim.clutter import MATERIALS, ClutterSettings, ObjectTruth, place_clutter
 from treetraits.sim.gnss import GnssEmulator, GnssSettings, UtmZone
-from treetraits.sim.lidar import LidarSettings, Scene, Vlp16Emulator
+from treetraits.sim.lidar import LidarSettings, Scene, Vlp16Emulator, _poses
 from treetraits.sim.orchard import (
     Ground,
+    TerrainSettings,
+    TreeSettings,
     TreeTruth,
     WindSettings,
     grid_orchard,
     ground_mesh,
     measure_truth,
+    missing_truth,
     tree_mesh,
     tree_sways,
+    vary_trees,
 )
-from treetraits.sim.paths import DriveSettings, drive, trajectory_function, waypoints
-from treetraits.sim.wheels import JackalMcuEmulator, WheelSettings
+from treetraits.sim.paths import (
+    DriveSettings,
+    drive,
+    riding_trajectory,
+    trajectory_function,
+    waypoints,
+)
+from treetraits.sim.wheels import JackalMcuEmulator, WheelSettings, imu_truth
 
 DEFAULT_CALIBRATION = Path(__file__).parent / "data" / "citrusfarm_calibration_v1.json"
 START_UTC = dt.datetime(2026, 5, 12, 17, 0, 0, tzinfo=dt.UTC)
@@ -64,6 +75,10 @@ class SurveySettings:
     wheels: WheelSettings = field(default_factory=WheelSettings)
     drive: DriveSettings = field(default_factory=DriveSettings)
     wind: WindSettings = field(default_factory=WindSettings)  # still air by default
+    # A real grove's conditions (all off by default: the paper's flat, bare, uniform twin).
+    terrain: TerrainSettings = field(default_factory=TerrainSettings)
+    trees: TreeSettings = field(default_factory=TreeSettings)
+    clutter: ClutterSettings = field(default_factory=ClutterSettings)
 
 
 @dataclass(frozen=True)
@@ -74,12 +89,67 @@ class SurveyResult:
     trees: list[TreeTruth]
     duration_s: float
     counts: dict[str, int]
+    objects_csv: Path | None = None
+    objects: tuple[ObjectTruth, ...] = ()
+
+
+@dataclass(frozen=True)
+class World:
+    scene: Scene
+    trees: list[TreeTruth]
+    ground: Ground
+    objects: tuple[ObjectTruth, ...]
+
+
+def make_ground(settings: SurveySettings) -> Ground:
+    t = settings.terrain
+    for name, value, limit in (
+        ("slope", settings.slope, 0.5),
+        ("terrain.slope_across", t.slope_across, 0.5),
+        ("terrain.undulation_m", t.undulation_m, 0.5),
+        ("terrain.furrow_m", t.furrow_m, 0.5),
+        ("terrain.bed_height_m", t.bed_height_m, 1.0),
+    ):
+        if not math.isfinite(value) or abs(value) > limit:
+            raise ValueError(f"{name} must be finite and within +-{limit}, got {value}")
+    if not t.furrow_spacing_m > 0:
+        raise ValueError(f"terrain.furrow_spacing_m must be > 0, got {t.furrow_spacing_m}")
+    beds = ()
+    if t.raised_beds:
+        offset_y = -(settings.columns - 1) * settings.width / 2 + settings.offset_y
+        beds = tuple(offset_y + c * settings.width for c in range(settings.columns))
+    return Ground(
+        slope_x=settings.slope,
+        slope_y=t.slope_across,
+        undulation_m=t.undulation_m,
+        furrow_m=t.furrow_m,
+        furrow_spacing_m=t.furrow_spacing_m,
+        bed_rows_y=beds,
+        bed_height_m=t.bed_height_m,
+        phase_seed=settings.seed,
+    )
 
 
 def build_orchard(settings: SurveySettings, rng: np.random.Generator):
-    """The scene and the truth: columns at y = +-width/2, rows from x = length on."""
-    ground = Ground(slope_x=settings.slope)
+    """The scene and the truth: columns at y = +-width/2, rows from x = length on (no
+    clutter: `build_world` adds it)."""
+    world = build_world(settings, rng)
+    return world.scene, world.trees, world.ground
+
+
+def build_world(
+    settings: SurveySettings,
+    rng: np.random.Generator,
+    poses: np.ndarray | None = None,
+    t0_s: float = 0.0,
+) -> World:
+    """The scene, the trees' and the other objects' truth. Clutter needs the robot's
+    `poses` (t s, x, y, yaw; it keeps clear of the path) and the run's start `t0_s`."""
+    ground = make_ground(settings)
     specs = grid_orchard(settings.columns, settings.rows, settings.width, settings.length, rng)
+    if settings.trees != TreeSettings():
+        # Their own generator: the default twin's trees are drawn exactly as before.
+        specs = vary_trees(specs, settings.trees, np.random.default_rng([settings.seed, 2]))
     # grid_orchard lays rows along +x from y = 0; centre the columns on the path.
     offset_y = -(settings.columns - 1) * settings.width / 2 + settings.offset_y
     # Table I names the rows along the path front, middle and back.
@@ -98,15 +168,58 @@ def build_orchard(settings: SurveySettings, rng: np.random.Generator):
     scene.add(*ground_mesh(ground, (-40, 60), (-40, 40)), label=0)
     meshes, truths = [], []
     for spec in specs:
+        if spec.kind == "missing":
+            meshes.append(None)
+            truths.append(missing_truth(spec))
+            continue
         vertices, triangles = tree_mesh(spec, ground, rng)
         meshes.append((vertices, triangles))
         truths.append(measure_truth(spec, vertices, ground))
     # The sway's draws come from a generator of their own: the same seed grows the same
     # trees with and without wind, so the two runs compare like with like.
-    sways = tree_sways(settings.wind, truths, ground, np.random.default_rng([settings.seed, 1]))
-    for i, ((vertices, triangles), sway) in enumerate(zip(meshes, sways, strict=True)):
-        scene.add(vertices, triangles, label=i + 1, sway=sway)
-    return scene, truths, ground
+    planted = [t for t in truths if t.kind != "missing"]
+    sways = iter(
+        tree_sways(settings.wind, planted, ground, np.random.default_rng([settings.seed, 1]))
+    )
+    for i, mesh in enumerate(meshes):
+        if mesh is not None:
+            scene.add(*mesh, label=i + 1, sway=next(sways))
+    objects: list[ObjectTruth] = []
+    if settings.clutter.any:
+        if poses is None:
+            raise ValueError("clutter is placed clear of the robot's path: pass its poses")
+        placed = place_clutter(
+            settings.clutter,
+            _row_lines(settings),
+            _tree_xs(settings),
+            settings.length,
+            [(t.x, t.y, t.width / 2) for t in truths if t.kind != "missing"],
+            poses,
+            ground,
+            np.random.default_rng([settings.seed, 4]),
+            t0_s,
+        )
+        for item in placed:
+            scene.add(
+                item.vertices,
+                item.triangles,
+                label=item.truth.label,
+                walk=item.walk,
+                material=MATERIALS[item.truth.kind],
+            )
+            objects.append(item.truth)
+    return World(scene, truths, ground, tuple(objects))
+
+
+def _row_lines(settings: SurveySettings) -> list[float]:
+    """The y of each line of trees along the path (the grid's columns)."""
+    offset_y = -(settings.columns - 1) * settings.width / 2 + settings.offset_y
+    return [offset_y + c * settings.width for c in range(settings.columns)]
+
+
+def _tree_xs(settings: SurveySettings) -> list[float]:
+    """The nominal x of the trees along each line."""
+    return [settings.length * (1 + r) for r in range(settings.rows)]
 
 
 def simulate_survey(
@@ -115,26 +228,38 @@ def simulate_survey(
     calibration: Calibration | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> SurveyResult:
-    """Write REC.mcap plus `<stem>.truth.csv` and `<stem>.field_map.geojson` beside it."""
+    """Write REC.mcap plus `<stem>.truth.csv`, `<stem>.objects.csv` and
+    `<stem>.field_map.geojson` beside it."""
     s = settings or SurveySettings()
     calibration = calibration or load_calibration(DEFAULT_CALIBRATION)
     rng = np.random.default_rng(s.seed)
-    scene, truths, ground = build_orchard(s, rng)
     poses = drive(waypoints(s.path, s.width, s.length, s.goal), s.drive)
-    # The twin's ground may slope: the robot rides on it.
     t0_ns = int(START_UTC.timestamp() * 1e9)
+    world = build_world(s, rng, poses, t0_ns / 1e9)
+    scene, truths, ground = world.scene, world.trees, world.ground
     duration_s = float(poses[-1, 0])
-    trajectory = trajectory_function(poses, t0_ns)
+    # The robot rides on the ground: z under it and, unless the ground is level, its pitch
+    # and roll from the ground under its four wheels.
+    level = ground.is_plane and ground.slope_x == 0 and ground.slope_y == 0
+    if level:
+        trajectory = trajectory_function(poses, t0_ns)
 
-    def pose_at(t_ns):
-        x, y, _, yaw = trajectory(np.asarray(t_ns))
-        return x, y, ground.height(x, y), yaw
+        def pose_at(t_ns):
+            x, y, _, yaw = trajectory(np.asarray(t_ns))
+            return x, y, ground.height(x, y), yaw
+    else:
+        pose_at = riding_trajectory(poses, t0_ns, ground)
+
+    def pose_values(t_ns) -> tuple[float, ...]:
+        return tuple(float(v) for v in pose_at(np.asarray(t_ns)))
 
     zone = UtmZone(UTM_ZONE)
     lidar = Vlp16Emulator(scene, calibration.T_base_lidar, s.lidar, rng)
     camera = Survey3Emulator(scene, calibration, s.camera, rng) if calibration.camera else None
     gnss = GnssEmulator(zone, ORIGIN_UTM, calibration.T_base_gnss, s.gnss, rng)
-    mcu = JackalMcuEmulator(calibration.wheels, s.wheels, rng)
+    mcu = JackalMcuEmulator(
+        calibration.wheels, s.wheels, rng, imu_rng=np.random.default_rng([s.seed, 3])
+    )
 
     messages: list[tuple[int, str, bytes, int]] = []  # (log_time, topic, data, publish_time)
     t_end = t0_ns + int(duration_s * 1e9)
@@ -144,12 +269,11 @@ def simulate_survey(
         progress(0.5)
     if camera is not None:
         for t in np.arange(t0_ns, t_end, int(1e9 / s.camera_rate_hz)):
-            x, y, z, yaw = (float(v) for v in pose_at(t))
             messages.append(
                 (
                     int(t) + LATENCY_NS["camera"],
                     rec.CAMERA_JPEG,
-                    camera.jpeg(_world_from_base(x, y, z, yaw), int(t)),
+                    camera.jpeg(_poses(*pose_values(t))[0], int(t)),
                     int(t),
                 )
             )
@@ -158,32 +282,34 @@ def simulate_survey(
     step = int(1e9 / s.gnss.rate_hz)
     previous = None
     for t in np.arange(t0_ns, t_end, step):
-        x, y, _, yaw = (float(v) for v in pose_at(t))
+        x, y, z, yaw, *tilt = pose_values(t)
         speed = (
             0.0 if previous is None else math.hypot(x - previous[0], y - previous[1]) / (step / 1e9)
         )
         previous = (x, y)
         utc = START_UTC + dt.timedelta(microseconds=(int(t) - t0_ns) // 1000)
-        for sentence in gnss.epoch((int(t) - t0_ns) / 1e9, utc, x, y, yaw, speed):
+        attitude = None if level else (z, *tilt)
+        for sentence in gnss.epoch((int(t) - t0_ns) / 1e9, utc, x, y, yaw, speed, attitude):
             messages.append((int(t) + LATENCY_NS["gnss"], rec.GNSS_NMEA, sentence, int(t)))
     messages.append((t0_ns, rec.WHEELS_JACKAL, mcu.handshake(), t0_ns))
     for t in np.arange(t0_ns, t_end, int(1e9 / s.wheels.rate_hz)):
-        x, y, _, yaw = (float(v) for v in pose_at(t))
-        messages.append(
-            (
-                int(t) + LATENCY_NS["wheels"],
-                rec.WHEELS_JACKAL,
-                mcu.feedback(int(t), x, y, yaw),
-                int(t),
-            )
-        )
+        x, y, z, yaw, *_ = pose_values(t)
+        data = mcu.feedback(int(t), x, y, yaw, None if level else z)
+        if s.wheels.imu:
+            # The MCU publishes imu/data_raw at the Feedback's rate: both frames arrive in
+            # one read of the port.
+            omega, force = imu_truth(pose_at, int(t), s.wheels.imu_difference_s)
+            data += mcu.imu(int(t), omega, force)
+        messages.append((int(t) + LATENCY_NS["wheels"], rec.WHEELS_JACKAL, data, int(t)))
     messages.sort(key=lambda m: (m[0], m[1]))
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     truth_csv = out.with_suffix(".truth.csv")
     field_map = out.with_suffix(".field_map.geojson")
+    objects_csv = out.with_suffix(".objects.csv")
     _write_truth(truth_csv, truths, zone)
+    _write_objects(objects_csv, world.objects, zone)
     geojson = _field_map(truths, zone)
     field_map.write_text(json.dumps(geojson, indent=1))
     counts: dict[str, int] = {}
@@ -194,14 +320,9 @@ def simulate_survey(
         writer.attach(rec.FIELD_MAP_NAME, json.dumps(geojson).encode(), rec.FIELD_MAP_MEDIA_TYPE)
     if progress:
         progress(1.0)
-    return SurveyResult(out, truth_csv, field_map, truths, duration_s, counts)
-
-
-def _world_from_base(x: float, y: float, z: float, yaw: float) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
-    pose[:3, 3] = (x, y, z)
-    return pose
+    return SurveyResult(
+        out, truth_csv, field_map, truths, duration_s, counts, objects_csv, world.objects
+    )
 
 
 def _write_truth(path: Path, truths: list[TreeTruth], zone: UtmZone) -> None:
@@ -220,6 +341,7 @@ def _write_truth(path: Path, truths: list[TreeTruth], zone: UtmZone) -> None:
                 "lon",
                 "width_m",
                 "height_m",
+                "kind",  # appended: tree, or missing (a field-map position with no tree)
             ]
         )
         for t in truths:
@@ -236,8 +358,49 @@ def _write_truth(path: Path, truths: list[TreeTruth], zone: UtmZone) -> None:
                     zone.name,
                     f"{lat:.9f}",
                     f"{lon:.9f}",
-                    f"{t.width:.3f}",
-                    f"{t.height:.3f}",
+                    "" if math.isnan(t.width) else f"{t.width:.3f}",
+                    "" if math.isnan(t.height) else f"{t.height:.3f}",
+                    t.kind,
+                ]
+            )
+
+
+OBJECT_COLUMNS = (
+    "object_id",
+    "kind",  # weed, drip_line, post, wire, person, walking_person, vehicle, wall
+    "x",
+    "y",
+    "easting",
+    "northing",
+    "size_m",  # largest horizontal extent
+    "length_m",  # footprint: a segment of this length through (x, y) along heading_deg
+    "width_m",  # and this wide across it
+    "heading_deg",  # ccw from +x (east)
+    "height_m",  # top above the ground
+    "label",  # the mesh's label in the scene
+)
+
+
+def _write_objects(path: Path, objects, zone: UtmZone) -> None:
+    """`<stem>.objects.csv`: every non-tree object (a header only when there are none)."""
+    with open(path, "w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(OBJECT_COLUMNS)
+        for o in objects:
+            out.writerow(
+                [
+                    o.object_id,
+                    o.kind,
+                    f"{o.x:.3f}",
+                    f"{o.y:.3f}",
+                    f"{ORIGIN_UTM[0] + o.x:.3f}",
+                    f"{ORIGIN_UTM[1] + o.y:.3f}",
+                    f"{o.size:.3f}",
+                    f"{o.length:.3f}",
+                    f"{o.width:.3f}",
+                    f"{math.degrees(o.heading):.1f}",
+                    f"{o.height:.3f}",
+                    o.label,
                 ]
             )
 

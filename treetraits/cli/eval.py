@@ -30,9 +30,18 @@ def register(commands: argparse._SubParsersAction) -> None:
     ev.add_argument("--seeds", type=int, help="seeds per case, 0..N-1 (default 5)")
     ev.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     ev.add_argument(
+        "--suite",
+        choices=("paper", "field"),
+        default="paper",
+        help="paper: the paper's Table I cases (default); field: a real grove's conditions "
+        "(slopes and uneven ground, weeds, posts, people, vehicles, walls, hedgerows, young "
+        "and old trees, missing trees, irregular crowns, wind), scored also for false "
+        "positives by what they hit and for missing trees",
+    )
+    ev.add_argument(
         "--cases",
-        help="comma list of case names or prefixes, or 'all' (default: the paper's "
-        "simulated cases and the CitrusFarm grove)",
+        help="comma list of case names or prefixes of the suite, or 'all' (default: the "
+        "suite's default cases; for paper, its simulated cases and the CitrusFarm grove)",
     )
     ev.add_argument(
         "--methods",
@@ -60,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.list:
         for case in CASES:
+            if case.suite != args.suite:
+                continue
             print(f"{case.name:22} {'' if case.default else '(not default) '}{case.title}")
         return 0
     if args.out is None:
@@ -71,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--seeds must be >= 1, got {seeds}")
     if args.jobs is not None and args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
-    cases = select_cases(args.cases)
+    cases = select_cases(args.cases, suite=args.suite)
     methods = parse_methods(args.methods)
     config = load_config(args.config)
     evaluation = run_evaluation(cases, range(seeds), methods, args.out, args.jobs, config=config)

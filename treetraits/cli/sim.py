@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from pathlib import Path
 
 from tqdm import tqdm
 
 from treetraits.drivers.calibration import load_calibration
 from treetraits.errors import ConfigError
+from treetraits.sim.clutter import ClutterSettings
 from treetraits.sim.gnss import GnssSettings
-from treetraits.sim.orchard import WindSettings
+from treetraits.sim.orchard import TerrainSettings, TreeSettings, WindSettings
 from treetraits.sim.paths import PATHS
 from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.wheels import WheelSettings
 
 QUALITIES = {"rtk": 4, "float": 5, "dgps": 2, "autonomous": 1}
 
@@ -26,7 +29,10 @@ def register(commands: argparse._SubParsersAction) -> None:
             "Simulate the paper's 2x3 citrus grid and a robot driving it at 0.5 m/s, and "
             "write what its VLP-16, Survey3N, GNSS receiver and Jackal MCU would send, as a "
             "recording (format v1). Beside it: <out>.truth.csv (each tree's position, width "
-            "and height by the traits' definitions) and <out>.field_map.geojson."
+            "and height by the traits' definitions, and kind: tree or missing), "
+            "<out>.objects.csv (every object that is not a tree) and "
+            "<out>.field_map.geojson. The options below grow a real grove's conditions; "
+            "without them the twin is the paper's flat, bare, uniform grid."
         ),
     )
     sim.add_argument(
@@ -61,7 +67,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         metavar="START:END",
         help="seconds from the start without GNSS (repeatable)",
     )
-    sim.add_argument("--slope", type=float, default=0.0, help="ground slope along the path")
+    sim.add_argument(
+        "--slope",
+        type=float,
+        default=0.0,
+        help="ground slope along the rows (the path), rise over run, within +-0.15 "
+        "(default 0); the robot pitches with the ground under its wheels",
+    )
     sim.add_argument("--goal", type=float, default=23.0, help="metres to drive (default 23)")
     sim.add_argument(
         "--wind",
@@ -79,6 +91,100 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="where the wind blows towards, degrees counter-clockwise from the path's "
         "direction (default 90: across the path, to the left)",
     )
+    ground = sim.add_argument_group("terrain (default: flat)")
+    ground.add_argument(
+        "--slope-across",
+        type=float,
+        default=0.0,
+        help="ground slope across the rows, rise over run, within +-0.08 (default 0)",
+    )
+    ground.add_argument(
+        "--undulation",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="rolling ground: +-M metres of 4.6-11.9 m waves, 0-0.10 (default 0)",
+    )
+    ground.add_argument(
+        "--furrows",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="furrows along the rows 1 m apart, +-M metres, 0-0.10 (default 0)",
+    )
+    ground.add_argument(
+        "--beds", action="store_true", help="raised beds (0.25 m berms) under the tree rows"
+    )
+    trees = sim.add_argument_group("trees (default: the paper's uniform 2.6-2.8 m citrus)")
+    trees.add_argument(
+        "--young",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="fraction of young trees (1.0-1.5 m tall, 0.8-1.2 m crowns), 0-1",
+    )
+    trees.add_argument(
+        "--old",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="fraction of old trees (~5 m tall, 4-5 m crowns), 0-1",
+    )
+    trees.add_argument(
+        "--irregular",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="fraction of trees with lobed, lopsided crowns, 0-1",
+    )
+    trees.add_argument(
+        "--hedgerow",
+        action="store_true",
+        help="3.0-3.3 m crowns: with --grid Wx2.75 (2.5-3 m in-row) they touch and overlap",
+    )
+    trees.add_argument(
+        "--missing",
+        type=int,
+        default=0,
+        metavar="N",
+        help="N field-map positions with no tree planted (kind=missing in the truth)",
+    )
+    clutter = sim.add_argument_group("objects that are not trees (default: none)")
+    clutter.add_argument(
+        "--weeds",
+        type=int,
+        default=0,
+        metavar="N",
+        help="N clumps of weeds / cover crop (0.1-0.6 m) in the inter-row and under trees",
+    )
+    clutter.add_argument(
+        "--drip-lines",
+        choices=("none", "ground", "hung"),
+        default="none",
+        help="a 2 cm drip line along each tree row, on the ground or hung at 0.35 m",
+    )
+    clutter.add_argument(
+        "--posts", action="store_true", help="end posts (0.1 m, 1.5-2.2 m) at every row's ends"
+    )
+    clutter.add_argument(
+        "--wires", action="store_true", help="a trellis wire at 1 m between the posts"
+    )
+    clutter.add_argument(
+        "--people",
+        action="store_true",
+        help="a person standing in a tree row and one walking across the rows",
+    )
+    clutter.add_argument(
+        "--vehicle", action="store_true", help="a pickup parked at the far headland"
+    )
+    clutter.add_argument(
+        "--wall", action="store_true", help="a wall (8 m long, 2.5 m high) beside the grove"
+    )
+    sim.add_argument(
+        "--no-imu",
+        action="store_true",
+        help="the wheel controller has no IMU (a retrofit tractor): no imu/data_raw",
+    )
     sim.add_argument(
         "--calibration",
         type=Path,
@@ -92,9 +198,14 @@ def _pair(text: str, what: str, kind=float) -> tuple:
         a, b = (kind(v) for v in text.lower().split("x"))
     except ValueError:
         raise ConfigError(f"{what} must look like 5x5, got {text!r}") from None
-    if a <= 0 or b <= 0:
-        raise ConfigError(f"{what} must be positive, got {text!r}")
+    if not (a > 0 and b > 0 and math.isfinite(a) and math.isfinite(b)):
+        raise ConfigError(f"{what} must be positive and finite, got {text!r}")
     return a, b
+
+
+def _within(option: str, value: float, low: float, high: float) -> None:
+    if not (math.isfinite(value) and low <= value <= high):
+        raise ConfigError(f"{option} must be a finite number in [{low:g}, {high:g}], got {value}")
 
 
 def run_sim(args: argparse.Namespace) -> int:
@@ -109,6 +220,23 @@ def run_sim(args: argparse.Namespace) -> int:
         outages.append((start, end))
     if not 0 <= args.wind < 60:
         raise ConfigError(f"--wind is a speed in m/s in [0, 60), got {args.wind:g}")
+    _within("--wind-direction", args.wind_direction, -360, 360)
+    _within("--slope", args.slope, -0.15, 0.15)
+    _within("--slope-across", args.slope_across, -0.08, 0.08)
+    _within("--undulation", args.undulation, 0, 0.10)
+    _within("--furrows", args.furrows, 0, 0.10)
+    _within("--young", args.young, 0, 1)
+    _within("--old", args.old, 0, 1)
+    _within("--irregular", args.irregular, 0, 1)
+    _within("--goal", args.goal, 0.1, 1000)
+    if args.young + args.old > 1:
+        raise ConfigError(f"--young + --old must be <= 1, got {args.young + args.old:g}")
+    if not 0 <= args.missing <= columns * rows:
+        raise ConfigError(f"--missing must be in [0, {columns * rows}] trees, got {args.missing}")
+    if not 0 <= args.weeds <= 5000:
+        raise ConfigError(f"--weeds is a number of clumps in [0, 5000], got {args.weeds}")
+    if args.wires and not args.posts:
+        raise ConfigError("--wires hang between posts: add --posts")
     settings = SurveySettings(
         path=args.path,
         width=width,
@@ -125,6 +253,30 @@ def run_sim(args: argparse.Namespace) -> int:
             outages=tuple(outages),
         ),
         wind=WindSettings(speed_mps=args.wind, direction_deg=args.wind_direction),
+        terrain=TerrainSettings(
+            slope_across=args.slope_across,
+            undulation_m=args.undulation,
+            furrow_m=args.furrows,
+            raised_beds=args.beds,
+        ),
+        trees=TreeSettings(
+            young_fraction=args.young,
+            old_fraction=args.old,
+            irregular_fraction=args.irregular,
+            missing=args.missing,
+            hedgerow=args.hedgerow,
+        ),
+        clutter=ClutterSettings(
+            weeds=args.weeds,
+            drip_lines=args.drip_lines,
+            posts=args.posts,
+            wires=args.wires,
+            standing_people=int(args.people),
+            walking_people=int(args.people),
+            vehicle=args.vehicle,
+            wall=args.wall,
+        ),
+        wheels=dataclasses.replace(WheelSettings(), imu=not args.no_imu),
     )
     calibration = load_calibration(args.calibration) if args.calibration else None
     with tqdm(total=100, desc="sim", unit="%", leave=False, disable=None) as bar:
@@ -138,5 +290,7 @@ def run_sim(args: argparse.Namespace) -> int:
         + ", ".join(f"{n} {topic}" for topic, n in sorted(result.counts.items()))
         + ")"
     )
-    print(f"truth: {result.truth_csv}  field map: {result.field_map}")
+    print(
+        f"truth: {result.truth_csv}  objects: {result.objects_csv}  field map: {result.field_map}"
+    )
     return 0

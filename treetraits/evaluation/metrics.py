@@ -5,6 +5,13 @@ A truth tree with at least one detection is found; its primary detection is the 
 one, and any further detection on it is a duplicate. A detection within the gate of no
 truth tree is a false positive. Traits and position errors are taken on the primary
 detections; a tree not found has no trait error (it counts in `found`, not in MAPE).
+
+Field conditions: a missing tree (truth `kind` "missing": in the field map, not planted)
+is a target like the others, but a detection on it is wrong: it counts as a false
+positive of kind "missing_tree". Every other false positive is put down to the nearest
+non-tree object of the truth's objects file within its footprint + `OBJECT_MARGIN_M`, else
+"other". A replay row with `status` "missing" (the replay's own report that a field-map
+tree was not seen) is not a detection; it marks that tree as reported missing.
 """
 
 from __future__ import annotations
@@ -22,6 +29,11 @@ from treetraits.errors import SourceError
 # A detection is scored against the nearest true tree within the replay's own field-map gate.
 from treetraits.pipeline.georef import DEFAULT_GATE_M
 
+# A false positive is put down to an object when its centre is within the object's
+# footprint plus this: a cluster's centre sits inside what it hit, and the tracker's
+# smoothing and the localisation (~0.3 m on the twin) move it a little.
+OBJECT_MARGIN_M = 1.0
+
 
 @dataclass(frozen=True)
 class TruthTree:
@@ -29,8 +41,32 @@ class TruthTree:
     row: str
     easting: float
     northing: float
-    width_m: float
+    width_m: float  # NaN for a missing tree
     height_m: float
+    kind: str = "tree"  # tree | missing
+
+
+@dataclass(frozen=True)
+class TruthObject:
+    """A non-tree object of `<stem>.objects.csv`: a footprint segment of `length_m` through
+    (easting, northing) along `heading_deg`, `width_m` across."""
+
+    object_id: str
+    kind: str
+    easting: float
+    northing: float
+    length_m: float
+    width_m: float
+    heading_deg: float
+
+    def distance(self, easting: float, northing: float) -> float:
+        """From a point to the footprint's edge (0 inside)."""
+        heading = math.radians(self.heading_deg)
+        ux, uy = math.cos(heading), math.sin(heading)
+        dx, dy = easting - self.easting, northing - self.northing
+        along = max(-self.length_m / 2, min(self.length_m / 2, dx * ux + dy * uy))
+        gap = math.hypot(dx - along * ux, dy - along * uy)
+        return max(0.0, gap - self.width_m / 2)
 
 
 @dataclass(frozen=True)
@@ -40,6 +76,8 @@ class Detection:
     northing: float | None
     width_m: float
     height_m: float
+    status: str | None = None  # the replay's `status` column if it has one (found/missing)
+    field_id: str | None = None
 
 
 @dataclass(frozen=True)
@@ -69,9 +107,20 @@ class TreeScore:
 
 
 @dataclass(frozen=True)
+class MissingScore:
+    """One missing tree (in the field map, not planted) in one run."""
+
+    truth: TruthTree
+    detections: int  # detections on its position: each one a false positive
+    reported_missing: bool | None  # the replay said so (None: its output has no status)
+
+
+@dataclass(frozen=True)
 class RunScore:
     trees: tuple[TreeScore, ...]
     false_positives: tuple[Detection, ...]  # on no truth tree (or never placed)
+    missing: tuple[MissingScore, ...] = ()
+    false_positive_kinds: tuple[str, ...] = ()  # what each false positive hit, in order
 
     @property
     def found(self) -> int:
@@ -80,6 +129,12 @@ class RunScore:
     @property
     def duplicates(self) -> int:
         return sum(t.duplicates for t in self.trees)
+
+    def false_positives_by_kind(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for kind in self.false_positive_kinds:
+            out[kind] = out.get(kind, 0) + 1
+        return out
 
 
 @dataclass(frozen=True)
@@ -117,8 +172,14 @@ def nearest_within(points: np.ndarray, targets: np.ndarray, gate_m: float) -> li
 
 
 def score_run(
-    detections: Sequence[Detection], truths: Sequence[TruthTree], gate_m: float = DEFAULT_GATE_M
+    detections: Sequence[Detection],
+    truths: Sequence[TruthTree],
+    gate_m: float = DEFAULT_GATE_M,
+    objects: Sequence[TruthObject] = (),
 ) -> RunScore:
+    # Rows the replay marks missing are its report on field-map trees, not detections.
+    reports = [d for d in detections if d.status == "missing"]
+    detections = [d for d in detections if d.status != "missing"]
     xy = np.array(
         [(np.nan, np.nan) if d.easting is None else (d.easting, d.northing) for d in detections],
         dtype=float,
@@ -126,22 +187,52 @@ def score_run(
     truth_xy = np.array([(t.easting, t.northing) for t in truths], dtype=float).reshape(-1, 2)
     assigned = nearest_within(xy, truth_xy, gate_m)
     on_tree: dict[int, list[int]] = {}
-    false_positives = []
+    false_positives, kinds = [], []
     for i, j in enumerate(assigned):
         if j is None:
             false_positives.append(detections[i])
+            kinds.append(_object_kind(detections[i], objects))
+        elif truths[j].kind == "missing":
+            false_positives.append(detections[i])
+            kinds.append("missing_tree")
+            on_tree.setdefault(j, []).append(i)
         else:
             on_tree.setdefault(j, []).append(i)
-    trees = []
+    trees, missing = [], []
+    has_status = any(d.status is not None for d in (*detections, *reports))
     for j, truth in enumerate(truths):
         mine = on_tree.get(j, [])
+        if truth.kind == "missing":
+            reported = None
+            if has_status:
+                reported = any(
+                    r.field_id == truth.tree_id
+                    or (
+                        r.easting is not None
+                        and math.hypot(r.easting - truth.easting, r.northing - truth.northing)
+                        <= gate_m
+                    )
+                    for r in reports
+                )
+            missing.append(MissingScore(truth, len(mine), reported))
+            continue
         primary = min(mine, key=lambda i: (math.dist(xy[i], truth_xy[j]), i)) if mine else None
         trees.append(
             TreeScore(
                 truth, None if primary is None else detections[primary], max(0, len(mine) - 1)
             )
         )
-    return RunScore(tuple(trees), tuple(false_positives))
+    return RunScore(tuple(trees), tuple(false_positives), tuple(missing), tuple(kinds))
+
+
+def _object_kind(detection: Detection, objects: Sequence[TruthObject]) -> str:
+    """The kind of the nearest object within its footprint + OBJECT_MARGIN_M, else other."""
+    if detection.easting is None or not objects:
+        return "other"
+    distance, kind = min(
+        (o.distance(detection.easting, detection.northing), o.kind) for o in objects
+    )
+    return kind if distance <= OBJECT_MARGIN_M else "other"
 
 
 def row_stats(scores: Iterable[RunScore], rows: Sequence[str]) -> list[RowStats]:
@@ -191,7 +282,8 @@ def _sd(values: Sequence[float]) -> float:
 
 
 def load_truth(path: Path) -> list[TruthTree]:
-    """The simulator's REC.truth.csv."""
+    """The simulator's REC.truth.csv (`kind` absent: every row a tree, as written before
+    the field conditions)."""
     try:
         with open(path, newline="") as f:
             return [
@@ -200,8 +292,9 @@ def load_truth(path: Path) -> list[TruthTree]:
                     r["row"],
                     float(r["easting"]),
                     float(r["northing"]),
-                    float(r["width_m"]),
-                    float(r["height_m"]),
+                    _number(r["width_m"]),
+                    _number(r["height_m"]),
+                    r.get("kind") or "tree",
                 )
                 for r in csv.DictReader(f)
             ]
@@ -211,9 +304,50 @@ def load_truth(path: Path) -> list[TruthTree]:
         raise SourceError(f"{path}: not a truth CSV written by treetraits sim ({exc})") from None
 
 
+def objects_path(truth_csv: Path) -> Path:
+    """`<stem>.objects.csv` beside `<stem>.truth.csv`."""
+    truth_csv = Path(truth_csv)
+    return truth_csv.with_name(truth_csv.name.removesuffix(".truth.csv") + ".objects.csv")
+
+
+def load_objects(path: Path) -> list[TruthObject]:
+    """The simulator's `<stem>.objects.csv`; no file (an older recording): no objects."""
+    try:
+        with open(path, newline="") as f:
+            return [
+                TruthObject(
+                    r["object_id"],
+                    r["kind"],
+                    float(r["easting"]),
+                    float(r["northing"]),
+                    float(r["length_m"]),
+                    float(r["width_m"]),
+                    float(r["heading_deg"]),
+                )
+                for r in csv.DictReader(f)
+            ]
+    except FileNotFoundError:
+        return []
+    except (KeyError, ValueError) as exc:
+        raise SourceError(f"{path}: not an objects CSV written by treetraits sim ({exc})") from None
+
+
+def _number(text: str) -> float:
+    return float(text) if text.strip() else math.nan
+
+
 def detections_from_trees(trees: Iterable) -> list[Detection]:
-    """`drivers.records.Tree` records (a replay's output) as detections."""
+    """`drivers.records.Tree` records (a replay's output) as detections; a `status` field
+    (found/missing), where the records have one, is kept."""
     return [
-        Detection(t.tree_id, t.easting, t.northing, float(t.width_m), float(t.height_m))
+        Detection(
+            t.tree_id,
+            t.easting,
+            t.northing,
+            math.nan if t.width_m is None else float(t.width_m),
+            math.nan if t.height_m is None else float(t.height_m),
+            getattr(t, "status", None),
+            getattr(t, "field_id", None),
+        )
         for t in trees
     ]

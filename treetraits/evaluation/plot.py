@@ -42,6 +42,18 @@ def plot_case(
     ax.plot(poses[:, 1], poses[:, 2], color="0.6", lw=1, ls="--", label="robot path")
     for t in truths:
         x, y = t.easting - e0, t.northing - n0
+        if t.kind == "missing":  # in the field map, not planted
+            ax.plot(x, y, marker="X", color="0.4", ms=7)
+            ax.annotate(
+                f"{t.tree_id} missing",
+                (x, y),
+                xytext=(0, 5),
+                textcoords="offset points",
+                ha="center",
+                fontsize=7,
+                color="0.3",
+            )
+            continue
         ax.add_patch(Circle((x, y), t.width_m / 2, fc=(0.2, 0.6, 0.2, 0.18), ec="tab:green"))
         ax.plot(x, y, marker="o", color="tab:green", ms=4)
         # Id and row above the crown: neighbours 4 m apart leave no room beside it.

@@ -3,6 +3,7 @@ the headline over all cases for the best method."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -11,7 +12,9 @@ from treetraits.evaluation.metrics import (
     DEFAULT_GATE_M,
     RowStats,
     RunScore,
+    load_objects,
     load_truth,
+    objects_path,
     position_rmse,
     row_stats,
     score_run,
@@ -32,6 +35,13 @@ class CaseMethodResult:
     position_rmse_m: float
     s_per_scan: float  # replay wall time / scans, mean over runs
     scores: tuple[RunScore, ...]
+    # Field conditions: what the false positives hit, and the missing trees (in the field
+    # map, not planted): how many, how many detections were made on one (each also a false
+    # positive), and how many the replay reported missing (None: no status in its output).
+    false_positives_by_kind: dict[str, int] = dataclasses.field(default_factory=dict)
+    missing_trees: int = 0
+    missing_detected: int = 0
+    missing_reported: int | None = None
 
 
 @dataclass(frozen=True)
@@ -49,11 +59,23 @@ class MethodSummary:
 
 def score(evaluation: Evaluation, gate_m: float = DEFAULT_GATE_M) -> list[CaseMethodResult]:
     truths = {(s.case, s.seed): load_truth(s.truth_csv) for s in evaluation.simulated}
+    objects = {
+        (s.case, s.seed): load_objects(objects_path(s.truth_csv)) for s in evaluation.simulated
+    }
     out = []
     for case in evaluation.cases:
         for method in evaluation.methods:
             runs = [r for r in evaluation.replayed if r.case == case.name and r.method == method]
-            scores = tuple(score_run(r.detections, truths[(r.case, r.seed)], gate_m) for r in runs)
+            scores = tuple(
+                score_run(r.detections, truths[(r.case, r.seed)], gate_m, objects[(r.case, r.seed)])
+                for r in runs
+            )
+            by_kind: dict[str, int] = {}
+            for s in scores:
+                for kind, n in s.false_positives_by_kind().items():
+                    by_kind[kind] = by_kind.get(kind, 0) + n
+            missing = [m for s in scores for m in s.missing]
+            reported = [m.reported_missing for m in missing if m.reported_missing is not None]
             out.append(
                 CaseMethodResult(
                     case=case,
@@ -67,6 +89,10 @@ def score(evaluation: Evaluation, gate_m: float = DEFAULT_GATE_M) -> list[CaseMe
                     position_rmse_m=position_rmse(scores),
                     s_per_scan=_mean([r.s_per_scan for r in runs]),
                     scores=scores,
+                    false_positives_by_kind=dict(sorted(by_kind.items())),
+                    missing_trees=len(missing),
+                    missing_detected=sum(m.detections > 0 for m in missing),
+                    missing_reported=sum(reported) if reported else None,
                 )
             )
     return out
@@ -144,6 +170,11 @@ def to_json(evaluation: Evaluation, results: list[CaseMethodResult]) -> dict:
                 "false_positives": r.false_positives,
                 "position_rmse_m": _round(r.position_rmse_m, 3),
                 "s_per_scan": _round(r.s_per_scan, 4),
+                "suite": r.case.suite,
+                "false_positives_by_kind": r.false_positives_by_kind,
+                "missing_trees": r.missing_trees,
+                "missing_detected": r.missing_detected,
+                "missing_reported_missing": r.missing_reported,
                 "rows": [row_json(r.case, row) for row in r.rows],
             }
             for r in results

@@ -111,6 +111,7 @@ SIMULATOR_FILES = (
     "camera.py",
     "gnss.py",
     "wheels.py",
+    "clutter.py",
 )
 
 

@@ -33,6 +33,11 @@ CSV_COLUMNS = (
     "case_false_positives",
     "case_position_rmse_m",
     "case_s_per_scan",
+    # Field conditions (appended): "kind:n;kind:n", and the missing trees' figures.
+    "case_false_positives_by_kind",
+    "case_missing_trees",
+    "case_missing_detected",
+    "case_missing_reported",
 )
 
 
@@ -58,6 +63,12 @@ def write_csv(path: Path, results: list[CaseMethodResult]) -> None:
                         "case_false_positives": r.false_positives,
                         "case_position_rmse_m": _cell(r.position_rmse_m, 3),
                         "case_s_per_scan": _cell(r.s_per_scan, 4),
+                        "case_false_positives_by_kind": _kinds(r.false_positives_by_kind),
+                        "case_missing_trees": r.missing_trees,
+                        "case_missing_detected": r.missing_detected,
+                        "case_missing_reported": ""
+                        if r.missing_reported is None
+                        else r.missing_reported,
                     }
                 )
 
@@ -124,6 +135,23 @@ def markdown(
                 ]
             )
         )
+    if any(r.case.suite != "paper" or r.missing_trees for r in results):
+        header = ["case", "method", "false pos. by what they hit", "missing trees",
+                  "detected on a missing tree", "reported missing"]  # fmt: skip
+        lines += ["", "## Field conditions", "", _md_row(header), _md_row(["---"] * 6)]
+        for r in results:
+            lines.append(
+                _md_row(
+                    [
+                        r.case.name,
+                        r.method,
+                        _kinds(r.false_positives_by_kind) or "-",
+                        str(r.missing_trees),
+                        str(r.missing_detected),
+                        "-" if r.missing_reported is None else str(r.missing_reported),
+                    ]
+                )
+            )
     lines += ["", "## Over all cases", ""]
     header = [
         "method",
@@ -160,6 +188,10 @@ def markdown(
         "",
     ]
     return "\n".join(lines)
+
+
+def _kinds(by_kind: dict[str, int]) -> str:
+    return ";".join(f"{kind}:{n}" for kind, n in by_kind.items())
 
 
 def _md_row(cells: list[str]) -> str:
