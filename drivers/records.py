@@ -163,6 +163,11 @@ class Tree:
     Position in the UTM zone of the run (`utm_zone` like `11N`) and in WGS84; None while
     the tree is only known in `odom` (seen before the first GNSS fix or in an outage).
     Times are ns since the Unix epoch.
+
+    `status`: "found" (detected), "missing" (a field-map tree the robot passed within
+    sensing range and did not find: its position is the map's, `tree_id` is empty, its
+    traits NaN, no times) or "rejected" (an object seen as often as a tree that is not
+    one: `reason` says why, see `pipeline.classify.REASONS`).
     """
 
     tree_id: str
@@ -175,7 +180,9 @@ class Tree:
     height_m: float
     ndvi: float | None
     observations: int
-    first_seen: int
-    last_seen: int
+    first_seen: int | None
+    last_seen: int | None
     field_id: str | None = None
     row: str | None = None
+    status: str = "found"
+    reason: str | None = None

@@ -144,6 +144,17 @@ class ClusterConfig:
     # (300-600 for a 2.7 m crown), only a wall or a building is bigger.
     min_points: int = 10
     max_points: int = 20000
+    # Touching crowns (a hedgerow) are cut at their trunks (`detection.split_at_trunks`).
+    # Trunks are looked for in this band above the terrain: above the soil's roughness,
+    # below the skirts of pruned citrus (0.35-0.6 m; the LiDAR, 0.4 m up, sees it level).
+    trunk_band_m: tuple[float, float] = (0.08, 0.32)
+    # A trunk seen from one side: 0.05-0.35 m thick; more is a skirt or a weed in the band.
+    max_trunk_width_m: float = 0.5
+    min_trunk_points: int = 4
+    # Trees closer than this are not planted: citrus in-row spacing is 2.5 m at its
+    # densest (hedgerows), less 0.2 m of planting error. Clusters shorter than twice
+    # this are never cut.
+    min_tree_spacing_m: float = 2.3
     # "kdtree": scipy cKDTree pairs + connected components; "dbscan": open3d
     # `cluster_dbscan(eps, min_points=1)`. Same clusters; see docs for the timing.
     method: str = "kdtree"
@@ -313,6 +324,10 @@ def _validate_detection(d: DetectionConfig) -> None:
     _need(0 < f.min_tree_share <= 1, "detection.classify.min_tree_share must be in (0, 1]")
     _need(k.voxel_m > 0 and k.tolerance_m > 0, "detection.cluster: voxel_m, tolerance_m > 0")
     _need(1 <= k.min_points <= k.max_points, "detection.cluster: 1 <= min_points <= max_points")
+    _need(k.trunk_band_m[0] < k.trunk_band_m[1], "detection.cluster.trunk_band_m: low < high")
+    _need(k.max_trunk_width_m > 0, "detection.cluster.max_trunk_width_m must be > 0")
+    _need(k.min_trunk_points >= 1, "detection.cluster.min_trunk_points must be >= 1")
+    _need(k.min_tree_spacing_m > 0, "detection.cluster.min_tree_spacing_m must be > 0")
     _need(
         k.method in CLUSTERING_METHODS,
         f"detection.cluster.method must be one of {CLUSTERING_METHODS}",

@@ -314,7 +314,7 @@ def detect(
     kept = above | skirt
     counts["ground"] = int(len(xyz) - kept.sum())
     counts["skirt"] = int(skirt.sum())
-    xyz, ring, above = xyz[kept], ring[kept], above[kept]
+    xyz, ring, above, height = xyz[kept], ring[kept], above[kept], height[kept]
     ndvi = None if ndvi is None else ndvi[kept]
     clock.lap("ndvi_check")
 
@@ -336,6 +336,7 @@ def detect(
         labels[~core] = attach(
             voxels[~core], voxels[core_index], labels[core_index], config.cluster.tolerance_m
         )
+    labels, counts["split"] = split_at_trunks(labels, voxel_of, xyz, height, config.cluster)
     clusters_kept = _size_filter(labels, config.cluster)
     counts["clusters_dropped"] = int(labels.max(initial=-1) + 1 - len(clusters_kept))
     clock.lap("cluster")
@@ -354,6 +355,85 @@ def ground_model(xyz: np.ndarray, config: DetectionConfig) -> GroundModel:
     if config.ground.model == "plane":
         return fit_ground(xyz, config.ground)
     return fit_terrain(xyz, config.terrain, config.crop.x_m, config.crop.y_m)
+
+
+def split_at_trunks(
+    labels: np.ndarray,
+    voxel_of: np.ndarray,
+    xyz: np.ndarray,
+    height: np.ndarray,
+    config: ClusterConfig,
+) -> tuple[np.ndarray, int]:
+    """Crowns that touch (a hedgerow) make one cluster along the row: such a cluster is
+    cut into one per trunk, each voxel to the nearest trunk (x-y). A trunk: returns in the
+    trunk band above the terrain, below the skirts, forming a blob no wider than a trunk.
+    Only clusters at least two tree spacings long are looked at (a single crown, even an
+    old one, has one trunk). Returns the new voxel labels and how many clusters were cut."""
+    point_label = labels[voxel_of]
+    low, high = config.trunk_band_m
+    next_label = int(labels.max(initial=-1)) + 1
+    cut = 0
+    for label in np.unique(labels[labels >= 0]):
+        members = np.flatnonzero(point_label == label)
+        xy = xyz[members, :2]
+        extent = np.ptp(xy @ _DIRECTIONS_8, axis=0).max()
+        if extent < 2 * config.min_tree_spacing_m:
+            continue
+        band = members[(height[members] >= low) & (height[members] <= high)]
+        trunks = _trunks(xyz[band, :2], config)
+        if len(trunks) < 2:
+            continue
+        cells = np.flatnonzero(labels == label)
+        gaps = _voxel_xy(cells, voxel_of, xyz)[:, None, :] - trunks[None]
+        nearest = (gaps**2).sum(axis=2).argmin(axis=1)
+        new = np.where(nearest == 0, label, next_label + nearest - 1)
+        labels[cells] = new
+        next_label += len(trunks) - 1
+        cut += 1
+    return labels, cut
+
+
+# Eight bearings for a cluster's horizontal extent (the longest of them: within 8 %).
+_DIRECTIONS_8 = np.stack([np.cos(np.arange(8) * math.pi / 8), np.sin(np.arange(8) * math.pi / 8)])
+
+
+def _voxel_xy(cells: np.ndarray, voxel_of: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """x-y centroid of each voxel in `cells` (from its points)."""
+    index = np.full(int(voxel_of.max()) + 1, -1, dtype=np.int64)
+    index[cells] = np.arange(len(cells))
+    slot = index[voxel_of]
+    inside = slot >= 0
+    count = np.bincount(slot[inside], minlength=len(cells))
+    sums = np.stack(
+        [np.bincount(slot[inside], weights=xyz[inside, a], minlength=len(cells)) for a in (0, 1)],
+        axis=1,
+    )
+    return sums / np.maximum(count, 1)[:, None]
+
+
+def _trunks(xy: np.ndarray, config: ClusterConfig) -> np.ndarray:
+    """Trunk centres among the trunk band's returns (x-y): blobs of returns 0.25 m apart
+    at most, no wider than `max_trunk_width_m`, at least `min_tree_spacing_m` from one
+    with more returns."""
+    if len(xy) < config.min_trunk_points:
+        return np.zeros((0, 2))
+    blob = euclidean_clusters(np.column_stack([xy, np.zeros(len(xy))]), 0.25)
+    found = []
+    for b in np.unique(blob):
+        part = xy[blob == b]
+        if len(part) < config.min_trunk_points:
+            continue
+        width = float(np.ptp(part @ _DIRECTIONS_8, axis=0).max())
+        if width > config.max_trunk_width_m:
+            continue  # a skirt hanging into the band, a weed: not a trunk
+        found.append((len(part), part.mean(axis=0)))
+    # The best seen first: a blob of a few returns within a tree spacing of it gives way.
+    found.sort(key=lambda item: -item[0])
+    kept: list[np.ndarray] = []
+    for _, centre in found:
+        if all(np.hypot(*(centre - k)) >= config.min_tree_spacing_m for k in kept):
+            kept.append(centre)
+    return np.array(kept).reshape(-1, 2)
 
 
 def _size_filter(labels: np.ndarray, config: ClusterConfig) -> np.ndarray:

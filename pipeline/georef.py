@@ -50,7 +50,10 @@ CSV_COLUMNS = (
     "observations",
     "first_seen",
     "last_seen",
+    "status",  # appended (docs/architecture.md, Outputs): found or missing
 )
+FOUND, MISSING, REJECTED = "found", "missing", "rejected"
+TREE_KIND = "tree"  # a mapped tree's `kind` when it is one (`pipeline.classify.TREE`)
 
 UtmFromOdom = np.ndarray | Callable[[int], np.ndarray | None]
 
@@ -139,6 +142,7 @@ def georeference(
     out = []
     for i in keep:
         tree, (e, n), match = trees[i], xy[i], field_ids[i]
+        kind = getattr(tree, "kind", TREE_KIND)
         placed_here = i in lat_lon
         lat, lon = lat_lon.get(i, (None, None))
         out.append(
@@ -157,6 +161,41 @@ def georeference(
                 last_seen=int(tree.last_seen),
                 field_id=match.id if match else None,
                 row=match.row if match else None,
+                status=FOUND if kind == TREE_KIND else REJECTED,
+                reason=None if kind == TREE_KIND else kind,
+            )
+        )
+    return out
+
+
+def missing_trees(
+    field_map: FieldMapIndex, found: Iterable[Tree], passed: np.ndarray, reach_m: float
+) -> list[Tree]:
+    """Field-map trees no found tree is matched to, that the robot came within `reach_m`
+    of (`passed`: each map tree's nearest approach, m, in `field_map` order)."""
+    matched = {t.field_id for t in found if t.field_id is not None}
+    out = []
+    for k, mapped in enumerate(field_map.trees):
+        if mapped.id in matched or not passed[k] <= reach_m:
+            continue
+        easting, northing = field_map.xy[k]
+        out.append(
+            Tree(
+                tree_id="",
+                easting=float(easting),
+                northing=float(northing),
+                utm_zone=field_map.grid.name,
+                lat=float(mapped.lat),
+                lon=float(mapped.lon),
+                width_m=math.nan,
+                height_m=math.nan,
+                ndvi=None,
+                observations=0,
+                first_seen=None,
+                last_seen=None,
+                field_id=mapped.id,
+                row=mapped.row,
+                status=MISSING,
             )
         )
     return out
@@ -209,8 +248,10 @@ def _utm_xy(tree: MappedTree, grid: UtmGrid | None, utm_from_odom) -> np.ndarray
 # ---- outputs --------------------------------------------------------------------------
 
 
-def iso_utc(ns: int) -> str:
-    """ISO 8601 UTC with milliseconds, e.g. 2026-11-22T10:15:30.123Z."""
+def iso_utc(ns: int | None) -> str:
+    """ISO 8601 UTC with milliseconds, e.g. 2026-11-22T10:15:30.123Z ("" for None)."""
+    if ns is None:
+        return ""
     seconds, rest = divmod(int(ns), 1_000_000_000)
     moment = datetime.fromtimestamp(seconds, tz=timezone.utc)
     return f"{moment:%Y-%m-%dT%H:%M:%S}.{rest // 1_000_000:03d}Z"
@@ -233,6 +274,7 @@ def csv_row(tree: Tree) -> list[str]:
         str(tree.observations),
         iso_utc(tree.first_seen),
         iso_utc(tree.last_seen),
+        tree.status,
     ]
 
 
@@ -250,7 +292,8 @@ def write_trees_csv(path: str | os.PathLike, trees: Iterable[Tree]) -> None:
 
 def write_trees_geojson(path: str | os.PathLike, trees: Iterable[Tree]) -> None:
     """trees.geojson: a FeatureCollection of WGS84 Points (null geometry for a tree not
-    yet georeferenced), the trees.csv values as properties; written atomically."""
+    yet georeferenced), the trees.csv values as properties (and `reason` for rejected
+    objects: rejected.geojson is written by this too); written atomically."""
 
     def write(f: TextIO) -> None:
         features = [_feature(tree) for tree in trees]
@@ -275,9 +318,12 @@ def _feature(tree: Tree) -> dict[str, Any]:
         "height_m": _rounded(tree.height_m, 3),
         "ndvi": _rounded(tree.ndvi, 4),
         "observations": tree.observations,
-        "first_seen": iso_utc(tree.first_seen),
-        "last_seen": iso_utc(tree.last_seen),
+        "first_seen": iso_utc(tree.first_seen) or None,
+        "last_seen": iso_utc(tree.last_seen) or None,
+        "status": tree.status,
     }
+    if tree.reason is not None:
+        properties["reason"] = tree.reason
     return {"type": "Feature", "geometry": geometry, "properties": properties}
 
 

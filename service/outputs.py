@@ -1,5 +1,6 @@
 """A run's outputs, shared by `treetraits replay` and the service: the store committed per
-scan, and `trees.geojson` / `trees.csv` rewritten atomically (docs/architecture.md, "Outputs").
+scan, and `trees.geojson` / `trees.csv` (found and missing trees) and `rejected.geojson`
+(objects that are not trees) rewritten atomically (docs/architecture.md, "Outputs").
 
 `RunWriter` owns the store and knows how to turn the mapper's trees into georeferenced
 `Tree`s; when to export is the caller's choice (recorded time in a replay, wall time in
@@ -9,9 +10,13 @@ with the store's transaction rolled back, so a full disk never leaves a half-wri
 
 from __future__ import annotations
 
+import math
 import sqlite3
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from treetraits.drivers.records import Tree
 from treetraits.errors import TreetraitsError
@@ -20,6 +25,7 @@ from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.georef import (
     FieldMapIndex,
     georeference,
+    missing_trees,
     write_trees_csv,
     write_trees_geojson,
 )
@@ -29,6 +35,7 @@ from treetraits.service.survey import ScanOutcome, SurveyProcessor
 
 STORE_NAME = "traits.sqlite"
 CSV_NAME = "trees.csv"
+REJECTED_NAME = "rejected.geojson"
 GEOJSON_NAME = "trees.geojson"
 
 
@@ -56,6 +63,10 @@ class RunWriter:
         self.field_map = list(field_map)
         self.min_observations = gates.min_observations
         self.match_gate_m = gates.match_gate_m
+        self.missing_range_m = gates.missing_range_m
+        # The robot's path, one point per metre driven (x, y, frame, t), for the field-map
+        # trees it passed: a tree it never came near is not missing, just not surveyed.
+        self._path: list[_PathPoint] = []
         self.store_path = self.out_dir / STORE_NAME
         self.scans = 0  # scans committed
         self.exports = 0
@@ -79,12 +90,7 @@ class RunWriter:
     def georeferenced(self, only: set[str] | None = None) -> list[Tree]:
         """The reported trees as output records (`only`: just these ids' records)."""
         localizer = self.processor.localizer
-        field_map = self.field_map
-        if field_map and localizer.grid is not None:
-            # The field map in UTM once per run, not after every scan.
-            if self._field_index is None or self._field_index.grid is not localizer.grid:
-                self._field_index = FieldMapIndex(self.field_map, localizer.grid)
-            field_map = self._field_index
+        field_map = self._index() or self.field_map
         return georeference(
             self.reported(),
             localizer.grid,
@@ -113,6 +119,7 @@ class RunWriter:
             for c in result.clusters
             if c.tree_id is not None
         ]
+        self._follow(outcome)
         touched = {str(i) for i in (*result.created, *result.updated)}
         trees = self.georeferenced(only=touched) if touched else []
         try:
@@ -124,19 +131,76 @@ class RunWriter:
             ) from exc
         self.scans += 1
 
-    def export(self, trees: list[Tree] | None = None) -> list[Tree]:
-        """Rewrite trees.csv and trees.geojson (each atomically); returns the trees written."""
-        trees = self.georeferenced() if trees is None else trees
-        for name, write in ((CSV_NAME, write_trees_csv), (GEOJSON_NAME, write_trees_geojson)):
+    def export(self) -> Exported:
+        """Rewrite trees.csv, trees.geojson (found and missing trees) and rejected.geojson
+        (each atomically), and the store's missing trees and rejected objects."""
+        found = self.georeferenced()
+        missing = self.missing(found)
+        rejected = self.georeferenced_rejected()
+        try:
+            self.store.replace_unmatched(missing, rejected)
+        except sqlite3.Error as exc:
+            self._roll_back()
+            raise OutputError(
+                f"{self.store_path}: missing and rejected not written: {_sqlite_text(exc)}"
+            ) from exc
+        trees = found + missing
+        for name, write, rows in (
+            (CSV_NAME, write_trees_csv, trees),
+            (GEOJSON_NAME, write_trees_geojson, trees),
+            (REJECTED_NAME, write_trees_geojson, rejected),
+        ):
             path = self.out_dir / name
             try:
-                write(path, trees)
+                write(path, rows)
             except OSError as exc:
                 raise OutputError(
                     f"{path}: not rewritten ({exc.strerror or exc}); the previous version stays"
                 ) from exc
         self.exports += 1
-        return trees
+        return Exported(found, missing, rejected)
+
+    def georeferenced_rejected(self) -> list[Tree]:
+        localizer = self.processor.localizer
+        return georeference(
+            self.rejected(), localizer.grid, (), utm_from_odom=localizer.utm_from_odom
+        )
+
+    def missing(self, found: list[Tree]) -> list[Tree]:
+        """Field-map trees passed within `missing_range_m` that no found tree matched."""
+        localizer = self.processor.localizer
+        index = self._index()
+        if index is None or not len(index) or not self._path:
+            return []
+        path = georeference(self._path, localizer.grid, (), utm_from_odom=localizer.utm_from_odom)
+        xy = np.array([(p.easting, p.northing) for p in path if p.easting is not None])
+        if not len(xy):
+            return []
+        from scipy.spatial import cKDTree
+
+        passed, _ = cKDTree(xy).query(index.xy)
+        return missing_trees(index, found, passed, self.missing_range_m)
+
+    def _index(self) -> FieldMapIndex | None:
+        """The field map in the run's UTM grid, built once per grid."""
+        grid = self.processor.localizer.grid
+        if not self.field_map or grid is None:
+            return None
+        if self._field_index is None or self._field_index.grid is not grid:
+            self._field_index = FieldMapIndex(self.field_map, grid)
+        return self._field_index
+
+    def _follow(self, outcome: ScanOutcome) -> None:
+        pose = outcome.pose
+        if pose is None or pose.frame not in ("utm", "odom"):
+            return
+        last = self._path[-1] if self._path else None
+        if (
+            last is None
+            or last.frame != pose.frame
+            or math.hypot(pose.x - last.x, pose.y - last.y) >= 1.0
+        ):
+            self._path.append(_PathPoint(len(self._path), pose.x, pose.y, pose.frame, pose.t))
 
     def set_facts(self, facts: dict) -> None:
         try:
@@ -164,6 +228,29 @@ class RunWriter:
         # SQLite may leave the transaction open after SQLITE_FULL or SQLITE_IOERR on COMMIT;
         # the next BEGIN would then fail forever.
         self.store.rollback()
+
+
+@dataclass(frozen=True)
+class Exported:
+    found: list[Tree]
+    missing: list[Tree]  # field-map trees passed and not found
+    rejected: list[Tree]  # objects that are not trees, each with its reason
+
+
+@dataclass(frozen=True)
+class _PathPoint:
+    """A point of the robot's path, shaped as georeferencing reads a mapped tree."""
+
+    tree_id: int
+    x: float
+    y: float
+    frame: str
+    last_seen: int
+    width_m: float = math.nan
+    height_m: float = math.nan
+    ndvi: float | None = None
+    observations: int = 0
+    first_seen: int = 0
 
 
 def _sqlite_text(exc: sqlite3.Error) -> str:

@@ -9,6 +9,7 @@ input and options give the same outputs.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -120,8 +121,10 @@ def make_processor(config: ServiceConfig, calibration: Calibration, lidar_model:
 @dataclass(frozen=True)
 class ReplayReport:
     summary: dict
-    trees: list[Tree]
+    trees: list[Tree]  # found
     out_dir: Path
+    missing: list[Tree] = field(default_factory=list)  # field-map trees passed, not found
+    rejected: list[Tree] = field(default_factory=list)  # objects that are not trees
 
 
 def run_replay(
@@ -173,11 +176,14 @@ def run_replay(
                 progress(len(data))
         for outcome in processor.finish():
             writer.commit(outcome)
-        trees = writer.export()
+        exported = writer.export()
+        trees = exported.found
         summary.update(
             scans=writer.scans,
             trees=len(trees),
             matched=sum(t.field_id is not None for t in trees),
+            missing=len(exported.missing),
+            rejected=dict(sorted(Counter(t.reason for t in exported.rejected).items())),
             world_frame=processor.world_frame,
             utm_zone=processor.localizer.grid.name if processor.localizer.grid else None,
             scans_without_pose=processor.stats.scans_without_pose,
@@ -188,11 +194,12 @@ def run_replay(
         writer.set_facts(summary)
     finally:
         writer.close()
-    return ReplayReport(summary, trees, out_dir)
+    return ReplayReport(summary, trees, out_dir, exported.missing, exported.rejected)
 
 
 def format_table(trees: list[Tree]) -> str:
-    """The per-tree table printed at the end of a replay."""
+    """The per-tree table printed at the end of a replay (missing trees: their field id,
+    the map's position and `missing`)."""
     header = (
         f"{'tree':>5} {'field id':>8} {'row':>6} {'easting':>12} {'northing':>13} "
         f"{'width m':>7} {'height m':>8} {'NDVI':>5} {'obs':>4}"
@@ -201,9 +208,13 @@ def format_table(trees: list[Tree]) -> str:
     for t in trees:
         east = f"{t.easting:12.2f}" if t.easting is not None else f"{'-':>12}"
         north = f"{t.northing:13.2f}" if t.northing is not None else f"{'-':>13}"
-        ndvi = f"{t.ndvi:5.2f}" if t.ndvi is not None else f"{'-':>5}"
+        if t.status == "missing":
+            traits = f"{'missing':>27}"
+        else:
+            ndvi = f"{t.ndvi:5.2f}" if t.ndvi is not None else f"{'-':>5}"
+            traits = f"{t.width_m:7.2f} {t.height_m:8.2f} {ndvi} {t.observations:4d}"
         lines.append(
-            f"{t.tree_id:>5} {t.field_id or '-':>8} {t.row or '-':>6} {east} {north} "
-            f"{t.width_m:7.2f} {t.height_m:8.2f} {ndvi} {t.observations:4d}"
+            f"{t.tree_id or '-':>5} {t.field_id or '-':>8} {t.row or '-':>6} {east} {north} "
+            f"{traits}"
         )
     return "\n".join(lines)

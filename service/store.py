@@ -3,8 +3,12 @@ cut loses at most the scan in flight and the file always opens clean.
 
 Tables:
 - `run`: key/value facts about the run (software, calibration, method, start time).
-- `trees`: the latest state of every tree (one row per tree, replaced on each update).
-- `observations`: every per-scan observation of a tree (append only).
+- `trees`: the latest state of every tree (one row per tree, replaced on each update);
+  `status` found, or missing for a field-map tree passed and not found (tree_id
+  `missing:<field id>`, replaced at each export).
+- `rejected`: objects seen as often as trees that are not trees, with the reason
+  (replaced at each export).
+- `observations`: every per-scan observation of a tree or object (append only).
 """
 
 from __future__ import annotations
@@ -25,6 +29,13 @@ CREATE TABLE IF NOT EXISTS trees (
     field_id TEXT, row TEXT,
     easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
     width_m REAL, height_m REAL, ndvi REAL,  -- NULL until measured
+    observations INTEGER NOT NULL, first_seen INTEGER, last_seen INTEGER,
+    status TEXT NOT NULL DEFAULT 'found'
+);
+CREATE TABLE IF NOT EXISTS rejected (
+    tree_id TEXT PRIMARY KEY, reason TEXT NOT NULL,
+    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
+    width_m REAL, height_m REAL, ndvi REAL,
     observations INTEGER NOT NULL, first_seen INTEGER NOT NULL, last_seen INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS observations (
@@ -90,32 +101,70 @@ class TraitStore:
                     for o in observations
                 ],
             )
+            self._insert_trees(trees)
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
+
+    def replace_unmatched(self, missing: Iterable[Tree], rejected: Iterable[Tree]) -> None:
+        """The run's missing field-map trees and rejected objects as they stand now, in
+        one transaction (each export recomputes both)."""
+        self._db.execute("BEGIN")
+        try:
+            self._db.execute("DELETE FROM trees WHERE status = 'missing'")
+            self._insert_trees(missing)
+            self._db.execute("DELETE FROM rejected")
             self._db.executemany(
-                "INSERT OR REPLACE INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO rejected VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 [
                     (
                         t.tree_id,
-                        t.field_id,
-                        t.row,
+                        t.reason or "",
                         t.easting,
                         t.northing,
                         t.utm_zone,
                         t.lat,
                         t.lon,
-                        t.width_m,
-                        t.height_m,
+                        _real(t.width_m),
+                        _real(t.height_m),
                         t.ndvi,
                         t.observations,
                         t.first_seen,
                         t.last_seen,
                     )
-                    for t in trees
+                    for t in rejected
                 ],
             )
         except BaseException:
             self._db.execute("ROLLBACK")
             raise
         self._db.execute("COMMIT")
+
+    def _insert_trees(self, trees: Iterable[Tree]) -> None:
+        self._db.executemany(
+            "INSERT OR REPLACE INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            [
+                (
+                    t.tree_id or f"missing:{t.field_id}",
+                    t.field_id,
+                    t.row,
+                    t.easting,
+                    t.northing,
+                    t.utm_zone,
+                    t.lat,
+                    t.lon,
+                    _real(t.width_m),
+                    _real(t.height_m),
+                    t.ndvi,
+                    t.observations,
+                    t.first_seen,
+                    t.last_seen,
+                    t.status,
+                )
+                for t in trees
+            ],
+        )
 
     def rollback(self) -> None:
         """End a transaction left open by a failed write (SQLite may leave one open after
@@ -129,7 +178,16 @@ class TraitStore:
     def trees(self) -> list[Tree]:
         rows = self._db.execute(
             "SELECT tree_id, easting, northing, utm_zone, lat, lon, width_m, height_m, ndvi, "
-            "observations, first_seen, last_seen, field_id, row FROM trees ORDER BY tree_id"
+            "observations, first_seen, last_seen, field_id, row, status FROM trees "
+            "ORDER BY tree_id"
+        ).fetchall()
+        return [Tree(*row) for row in rows]
+
+    def rejected(self) -> list[Tree]:
+        rows = self._db.execute(
+            "SELECT tree_id, easting, northing, utm_zone, lat, lon, width_m, height_m, ndvi, "
+            "observations, first_seen, last_seen, NULL, NULL, 'rejected', reason "
+            "FROM rejected ORDER BY tree_id"
         ).fetchall()
         return [Tree(*row) for row in rows]
 
@@ -145,3 +203,8 @@ class TraitStore:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _real(value: float | None) -> float | None:
+    """NULL for an unmeasured trait (NaN)."""
+    return None if value is None or value != value else value

@@ -40,6 +40,7 @@ CONTRACT_CSV_COLUMNS = [
     "observations",
     "first_seen",
     "last_seen",
+    "status",  # appended after the contract's fourteen: found or missing
 ]
 
 

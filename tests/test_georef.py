@@ -381,6 +381,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         "12",
         first,
         last,
+        "found",
     ]
     lat, lon = GRID.inverse(E0 + 10.0, N0)
     assert rows[2] == [
@@ -398,6 +399,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         "12",
         first,
         last,
+        "found",
     ]
     assert rows[3] == [
         "3",
@@ -414,6 +416,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         "12",
         first,
         last,
+        "found",
     ]
     assert len(rows) == 4
     assert oct(os.stat(path).st_mode & 0o777) == "0o644"
@@ -441,6 +444,7 @@ def test_trees_geojson(tmp_path):
         "observations": 12,
         "first_seen": "2026-11-22T10:15:30.000Z",
         "last_seen": "2026-11-22T10:15:35.123Z",
+        "status": "found",
     }
     assert off_map["properties"]["field_id"] is None and off_map["properties"]["ndvi"] is None
     assert unplaced["geometry"] is None and unplaced["properties"]["easting"] is None

@@ -15,6 +15,7 @@ from treetraits.cli import main
 from treetraits.service.config import ServiceConfig, with_method
 from treetraits.service.replay import ReplayOptions, run_replay
 from treetraits.sim.gnss import GnssSettings
+from treetraits.sim.orchard import TreeSettings
 from treetraits.sim.run import SurveySettings, simulate_survey
 
 
@@ -33,7 +34,7 @@ def truth_rows(survey):
 def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
     assert main(["replay", str(survey.recording), "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
-    assert "6 trees (6 on the field map)" in printed
+    assert "6 trees (6 on the field map, 0 missing)" in printed
 
     with open(tmp_path / "trees.csv") as f:
         reader = csv.DictReader(f)
@@ -137,3 +138,32 @@ def test_a_run_without_gnss_maps_in_odom(tmp_path):
     with open(tmp_path / "out" / "trees.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 4 and all(r["easting"] == "" and r["utm_zone"] == "" for r in rows)
+
+
+def test_a_field_map_tree_passed_and_not_found_is_missing(tmp_path):
+    """Two of the six field-map positions hold no tree: both come out `missing` (the map's
+    position, no traits) in trees.csv, trees.geojson and the store; the four others are
+    found, and nothing is both."""
+    settings = SurveySettings(seed=3, goal=12.0, trees=TreeSettings(missing=2))
+    survey = simulate_survey(tmp_path / "survey.mcap", settings)
+    with open(survey.truth_csv) as f:
+        absent = {r["tree_id"] for r in csv.DictReader(f) if r["kind"] == "missing"}
+    assert len(absent) == 2
+    out = tmp_path / "out"
+    report = run_replay(survey.recording, out, ReplayOptions())
+    assert {t.field_id for t in report.missing} == absent
+    assert not absent & {t.field_id for t in report.trees}
+    with open(out / "trees.csv") as f:
+        rows = list(csv.DictReader(f))
+    missing_rows = [r for r in rows if r["status"] == "missing"]
+    assert {r["field_id"] for r in missing_rows} == absent
+    for row in missing_rows:
+        assert row["tree_id"] == "" and row["width_m"] == "" and row["observations"] == "0"
+        assert row["easting"] and row["lat"] and row["first_seen"] == ""
+    assert {r["status"] for r in rows} == {"found", "missing"}
+    features = json.loads((out / "trees.geojson").read_text())["features"]
+    assert sum(f["properties"]["status"] == "missing" for f in features) == 2
+    db = sqlite3.connect(out / "traits.sqlite")
+    stored = db.execute("SELECT field_id FROM trees WHERE status = 'missing'").fetchall()
+    assert {r[0] for r in stored} == absent
+    assert json.loads((out / "rejected.geojson").read_text())["type"] == "FeatureCollection"

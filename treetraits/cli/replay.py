@@ -78,9 +78,11 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, indent=1))
         return 0
-    print(format_table(report.trees))
+    print(format_table(report.trees + report.missing))
+    rejected = ", ".join(f"{n} {reason}" for reason, n in summary["rejected"].items())
     print(
-        f"\n{summary['trees']} trees ({summary['matched']} on the field map) from "
-        f"{summary['scans']} scans in {elapsed:.1f} s; outputs in {args.out}/"
+        f"\n{summary['trees']} trees ({summary['matched']} on the field map, "
+        f"{summary['missing']} missing) from {summary['scans']} scans in {elapsed:.1f} s; "
+        f"not trees: {rejected or 'none'}; outputs in {args.out}/"
     )
     return 0

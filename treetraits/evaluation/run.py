@@ -176,7 +176,7 @@ def replay(sim: Simulated, method: str, runs_dir: Path, config: ServiceConfig) -
         sim.case,
         sim.seed,
         method,
-        tuple(detections_from_trees(report.trees)),
+        tuple(detections_from_trees(report.trees + report.missing)),
         int(report.summary.get("scans", 0)),
         elapsed,
     )
