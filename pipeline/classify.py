@@ -67,8 +67,7 @@ def shape_of(
         return Shape(0.0, 0.0, 0.0, math.nan, math.nan, 0.0)
     height = float(points[:, 2].max() - ground_z)
     base = float(points[:, 2].min() - ground_z)
-    projected = points[:, :2] @ _DIRECTIONS
-    width = float((projected.max(axis=0) - projected.min(axis=0)).max())
+    width = horizontal_extent(points[:, :2])
     mean_ndvi, share = math.nan, 0.0
     if ndvi is not None and len(ndvi):
         known = np.isfinite(ndvi)
@@ -76,6 +75,14 @@ def shape_of(
         if known.any():
             mean_ndvi = float(ndvi[known].mean())
     return Shape(height, base, width, roughness(points, ring, lidar_xy), mean_ndvi, share)
+
+
+def horizontal_extent(xy: np.ndarray) -> float:
+    """The largest extent of x-y points over 12 bearings (their width), 0 for none."""
+    if len(xy) == 0:
+        return 0.0
+    projected = xy @ _DIRECTIONS
+    return float((projected.max(axis=0) - projected.min(axis=0)).max())
 
 
 def roughness(points: np.ndarray, ring: np.ndarray, lidar_xy: np.ndarray) -> float:

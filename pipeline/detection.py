@@ -15,7 +15,7 @@ from functools import cached_property
 
 import numpy as np
 
-from treetraits.pipeline.classify import Shape, judge, shape_of
+from treetraits.pipeline.classify import Shape, horizontal_extent, judge, shape_of
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -336,7 +336,7 @@ def detect(
         labels[~core] = attach(
             voxels[~core], voxels[core_index], labels[core_index], config.cluster.tolerance_m
         )
-    labels, counts["split"] = split_at_trunks(labels, voxel_of, xyz, height, config.cluster)
+    labels, counts["split"] = split_at_trunks(labels, voxel_of, voxels, xyz, height, config.cluster)
     clusters_kept = _size_filter(labels, config.cluster)
     counts["clusters_dropped"] = int(labels.max(initial=-1) + 1 - len(clusters_kept))
     clock.lap("cluster")
@@ -360,6 +360,7 @@ def ground_model(xyz: np.ndarray, config: DetectionConfig) -> GroundModel:
 def split_at_trunks(
     labels: np.ndarray,
     voxel_of: np.ndarray,
+    voxels: np.ndarray,
     xyz: np.ndarray,
     height: np.ndarray,
     config: ClusterConfig,
@@ -369,46 +370,32 @@ def split_at_trunks(
     trunk band above the terrain, below the skirts, forming a blob no wider than a trunk.
     Only clusters at least two tree spacings long are looked at (a single crown, even an
     old one, has one trunk). Returns the new voxel labels and how many clusters were cut."""
+    clustered = np.flatnonzero(labels >= 0)
+    order = clustered[np.argsort(labels[clustered], kind="stable")]
+    starts = np.flatnonzero(np.diff(labels[order], prepend=-2))
+    long = [
+        cells
+        for cells in np.split(order, starts[1:])
+        if len(cells) and horizontal_extent(voxels[cells, :2]) >= 2 * config.min_tree_spacing_m
+    ]
+    if not long:
+        return labels, 0
     point_label = labels[voxel_of]
     low, high = config.trunk_band_m
     next_label = int(labels.max(initial=-1)) + 1
     cut = 0
-    for label in np.unique(labels[labels >= 0]):
-        members = np.flatnonzero(point_label == label)
-        xy = xyz[members, :2]
-        extent = np.ptp(xy @ _DIRECTIONS_8, axis=0).max()
-        if extent < 2 * config.min_tree_spacing_m:
-            continue
+    for cells in long:
+        members = np.flatnonzero(point_label == labels[cells[0]])
         band = members[(height[members] >= low) & (height[members] <= high)]
         trunks = _trunks(xyz[band, :2], config)
         if len(trunks) < 2:
             continue
-        cells = np.flatnonzero(labels == label)
-        gaps = _voxel_xy(cells, voxel_of, xyz)[:, None, :] - trunks[None]
+        gaps = voxels[cells, None, :2] - trunks[None]
         nearest = (gaps**2).sum(axis=2).argmin(axis=1)
-        new = np.where(nearest == 0, label, next_label + nearest - 1)
-        labels[cells] = new
+        labels[cells] = np.where(nearest == 0, labels[cells], next_label + nearest - 1)
         next_label += len(trunks) - 1
         cut += 1
     return labels, cut
-
-
-# Eight bearings for a cluster's horizontal extent (the longest of them: within 8 %).
-_DIRECTIONS_8 = np.stack([np.cos(np.arange(8) * math.pi / 8), np.sin(np.arange(8) * math.pi / 8)])
-
-
-def _voxel_xy(cells: np.ndarray, voxel_of: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """x-y centroid of each voxel in `cells` (from its points)."""
-    index = np.full(int(voxel_of.max()) + 1, -1, dtype=np.int64)
-    index[cells] = np.arange(len(cells))
-    slot = index[voxel_of]
-    inside = slot >= 0
-    count = np.bincount(slot[inside], minlength=len(cells))
-    sums = np.stack(
-        [np.bincount(slot[inside], weights=xyz[inside, a], minlength=len(cells)) for a in (0, 1)],
-        axis=1,
-    )
-    return sums / np.maximum(count, 1)[:, None]
 
 
 def _trunks(xy: np.ndarray, config: ClusterConfig) -> np.ndarray:
@@ -423,8 +410,7 @@ def _trunks(xy: np.ndarray, config: ClusterConfig) -> np.ndarray:
         part = xy[blob == b]
         if len(part) < config.min_trunk_points:
             continue
-        width = float(np.ptp(part @ _DIRECTIONS_8, axis=0).max())
-        if width > config.max_trunk_width_m:
+        if horizontal_extent(part) > config.max_trunk_width_m:
             continue  # a skirt hanging into the band, a weed: not a trunk
         found.append((len(part), part.mean(axis=0)))
     # The best seen first: a blob of a few returns within a tree spacing of it gives way.

@@ -27,7 +27,14 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     ev.add_argument("--out", type=Path, help="output directory (required but with --list)")
     ev.add_argument("--quick", action="store_true", help="one seed per case (= --seeds 1)")
-    ev.add_argument("--seeds", type=int, help="seeds per case, 0..N-1 (default 5)")
+    ev.add_argument("--seeds", type=int, help="seeds per case, K..K+N-1 (default 5)")
+    ev.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        metavar="K",
+        help="the first seed (default 0): report on seeds that settings were not tuned on",
+    )
     ev.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     ev.add_argument(
         "--suite",
@@ -80,12 +87,21 @@ def run(args: argparse.Namespace) -> int:
     seeds = 1 if args.quick else (5 if args.seeds is None else args.seeds)
     if seeds < 1:
         raise ConfigError(f"--seeds must be >= 1, got {seeds}")
+    if args.first_seed < 0:
+        raise ConfigError(f"--first-seed must be >= 0, got {args.first_seed}")
     if args.jobs is not None and args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
     cases = select_cases(args.cases, suite=args.suite)
     methods = parse_methods(args.methods)
     config = load_config(args.config)
-    evaluation = run_evaluation(cases, range(seeds), methods, args.out, args.jobs, config=config)
+    evaluation = run_evaluation(
+        cases,
+        range(args.first_seed, args.first_seed + seeds),
+        methods,
+        args.out,
+        args.jobs,
+        config=config,
+    )
     report = write_report(evaluation, args.out)
     if args.json:
         print(json.dumps(report.summary, indent=1))
