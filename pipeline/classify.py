@@ -136,8 +136,15 @@ def judge(shape: Shape, config: ClassifyConfig) -> str:
 
 @dataclass
 class Votes:
-    """The verdicts of every scan of one track. A tree when at least `min_share` of its
-    verdicts say tree; else the reason given most often."""
+    """The verdicts of every cluster of one track (a scan may give a track several
+    pieces). A tree when its tree verdicts are at least `min_share` of the verdicts that
+    judge what the object is, and at least `min_share_all` of all of them; else the
+    reason given most often.
+
+    `low` and `floating` judge a piece, not the object: a crown cut by the crop box or
+    hidden in part is a floating top or a low skirt in some scans, and on a path that
+    passes a tree from several sides such pieces were half of its verdicts (the twin's
+    grove). A weed or a post taken for a tree in a few scans stays far below the floor."""
 
     counts: Counter = field(default_factory=Counter)
 
@@ -147,11 +154,13 @@ class Votes:
     def absorb(self, other: Votes) -> None:
         self.counts.update(other.counts)
 
-    def kind(self, min_share: float) -> str:
+    def kind(self, min_share: float, min_share_all: float) -> str:
         total = sum(self.counts.values())
         if total == 0:
             return TREE
-        if self.counts[TREE] >= min_share * total:
+        trees = self.counts[TREE]
+        judging = total - self.counts[LOW] - self.counts[FLOATING]
+        if trees >= min_share * judging and trees >= min_share_all * total:
             return TREE
         reasons = [(n, r) for r, n in self.counts.items() if r != TREE]
         return max(reasons, key=lambda item: (item[0], -REASONS.index(item[1])))[1]

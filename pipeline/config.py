@@ -194,8 +194,11 @@ class ClassifyConfig:
     # concrete below 0.2.
     min_ndvi: float = 0.3
     min_ndvi_share: float = 0.3
-    # A track is a tree when at least this share of its scans judged it one.
+    # A track is a tree when at least this share of its verdicts that judge the object
+    # (all but `low` and `floating`, which a piece of a crown gets) say tree, and this
+    # share of all of them (see `classify.Votes`).
     min_tree_share: float = 0.5
+    min_tree_share_all: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -322,6 +325,7 @@ def _validate_detection(d: DetectionConfig) -> None:
     _need(0 <= f.min_ndvi_share <= 1, "detection.classify.min_ndvi_share must be in [0, 1]")
     _need(-1 <= f.min_ndvi <= 1, "detection.classify.min_ndvi must be in [-1, 1]")
     _need(0 < f.min_tree_share <= 1, "detection.classify.min_tree_share must be in (0, 1]")
+    _need(0 <= f.min_tree_share_all <= 1, "detection.classify.min_tree_share_all: [0, 1]")
     _need(k.voxel_m > 0 and k.tolerance_m > 0, "detection.cluster: voxel_m, tolerance_m > 0")
     _need(1 <= k.min_points <= k.max_points, "detection.cluster: 1 <= min_points <= max_points")
     _need(k.trunk_band_m[0] < k.trunk_band_m[1], "detection.cluster.trunk_band_m: low < high")

@@ -195,6 +195,7 @@ class TreeMapper:
 
     def trees(self) -> list[TrackedTree]:
         """Every tree in memory, by id, with the configured trait method's values."""
+        classify = self.config.detection.classify
         out = []
         for track in sorted(self.tracker.tracks, key=lambda tr: tr.tree_id):
             tree = self._trees[track.tree_id]
@@ -219,7 +220,7 @@ class TreeMapper:
                     first_seen=track.first_seen,
                     last_seen=track.last_seen,
                     traits=tree.traits.method,
-                    kind=tree.votes.kind(self.config.detection.classify.min_tree_share),
+                    kind=tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all),
                 )
             )
         return out

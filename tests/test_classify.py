@@ -143,17 +143,25 @@ def test_roughness_of_a_smooth_wall_and_of_foliage():
     assert wall < 0.02 < CONFIG.min_roughness_m < 0.08 < foliage
 
 
-def test_a_track_is_what_most_of_its_scans_say():
-    votes = Votes()
-    for verdict in [TREE] * 6 + [LOW] * 3 + [SMOOTH]:
-        votes.add(verdict)
-    assert votes.kind(0.5) == TREE
-    other = Votes()
-    for verdict in [SMOOTH] * 8 + [LOW] * 8:
-        other.add(verdict)
-    votes.absorb(other)
-    assert votes.kind(0.5) == LOW  # ties: the rule tried first
-    assert Votes().kind(0.5) == TREE
+def test_a_track_is_what_most_of_its_verdicts_say():
+    def votes(**counts) -> Votes:
+        out = Votes()
+        for verdict, n in counts.items():
+            for _ in range(n):
+                out.add(verdict)
+        return out
+
+    assert votes(tree=6, low=3, smooth=1).kind(0.5, 0.25) == TREE
+    # A crown seen in pieces: its floating tops and low skirts do not count against it.
+    assert votes(tree=40, floating=30, low=20, smooth=5).kind(0.5, 0.25) == TREE
+    # A weed clump judged a tree in a few scans is still a weed.
+    assert votes(tree=3, low=100).kind(0.5, 0.25) == LOW
+    # A wall that looks rough in some scans: its smooth verdicts win.
+    assert votes(tree=10, smooth=30, low=5).kind(0.5, 0.25) == SMOOTH
+    mixed = votes(tree=6, low=3, smooth=1)
+    mixed.absorb(votes(smooth=8, low=8))
+    assert mixed.kind(0.5, 0.25) == LOW  # ties: the rule tried first
+    assert Votes().kind(0.5, 0.25) == TREE
 
 
 @pytest.mark.parametrize(
