@@ -30,6 +30,7 @@ from typing import Any, Protocol, TextIO
 import numpy as np
 
 from treetraits.drivers.records import Tree
+from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.localization.utm import UtmGrid
 
@@ -53,7 +54,6 @@ CSV_COLUMNS = (
     "status",  # appended (docs/architecture.md, Outputs): found or missing
 )
 FOUND, MISSING, REJECTED = "found", "missing", "rejected"
-TREE_KIND = "tree"  # a mapped tree's `kind` when it is one (`pipeline.classify.TREE`)
 
 UtmFromOdom = np.ndarray | Callable[[int], np.ndarray | None]
 
@@ -142,7 +142,7 @@ def georeference(
     out = []
     for i in keep:
         tree, (e, n), match = trees[i], xy[i], field_ids[i]
-        kind = getattr(tree, "kind", TREE_KIND)
+        kind = getattr(tree, "kind", TREE)
         placed_here = i in lat_lon
         lat, lon = lat_lon.get(i, (None, None))
         out.append(
@@ -161,8 +161,8 @@ def georeference(
                 last_seen=int(tree.last_seen),
                 field_id=match.id if match else None,
                 row=match.row if match else None,
-                status=FOUND if kind == TREE_KIND else REJECTED,
-                reason=None if kind == TREE_KIND else kind,
+                status=FOUND if kind == TREE else REJECTED,
+                reason=None if kind == TREE else kind,
             )
         )
     return out

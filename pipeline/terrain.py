@@ -72,14 +72,6 @@ class TerrainGrid:
     def ground_cells(self) -> int:
         return int(self.ground.sum())
 
-    def slope_at(self, x: float, y: float) -> tuple[float, float]:
-        """(dz/dx, dz/dy) of the terrain at (x, y), over one cell each way."""
-        h = self.cell
-        return (
-            (self.z_at(x + h, y) - self.z_at(x - h, y)) / (2 * h),
-            (self.z_at(x, y + h) - self.z_at(x, y - h)) / (2 * h),
-        )
-
 
 def fit_terrain(
     xyz: np.ndarray,

@@ -81,8 +81,7 @@ class TraitStore:
 
     def commit_scan(self, observations: Iterable[Observation], trees: Iterable[Tree]) -> None:
         """Everything one scan changed, in one transaction."""
-        self._db.execute("BEGIN")
-        try:
+        with self._transaction():
             self._db.executemany(
                 "INSERT INTO observations VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 [
@@ -102,69 +101,38 @@ class TraitStore:
                 ],
             )
             self._insert_trees(trees)
-        except BaseException:
-            self._db.execute("ROLLBACK")
-            raise
-        self._db.execute("COMMIT")
 
     def replace_unmatched(self, missing: Iterable[Tree], rejected: Iterable[Tree]) -> None:
         """The run's missing field-map trees and rejected objects as they stand now, in
         one transaction (each export recomputes both)."""
-        self._db.execute("BEGIN")
-        try:
+        with self._transaction():
             self._db.execute("DELETE FROM trees WHERE status = 'missing'")
             self._insert_trees(missing)
             self._db.execute("DELETE FROM rejected")
             self._db.executemany(
                 "INSERT INTO rejected VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                [
-                    (
-                        t.tree_id,
-                        t.reason or "",
-                        t.easting,
-                        t.northing,
-                        t.utm_zone,
-                        t.lat,
-                        t.lon,
-                        _real(t.width_m),
-                        _real(t.height_m),
-                        t.ndvi,
-                        t.observations,
-                        t.first_seen,
-                        t.last_seen,
-                    )
-                    for t in rejected
-                ],
+                [(t.tree_id, t.reason or "", *_measured(t)) for t in rejected],
             )
-        except BaseException:
-            self._db.execute("ROLLBACK")
-            raise
-        self._db.execute("COMMIT")
 
     def _insert_trees(self, trees: Iterable[Tree]) -> None:
         self._db.executemany(
             "INSERT OR REPLACE INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             [
-                (
-                    t.tree_id or f"missing:{t.field_id}",
-                    t.field_id,
-                    t.row,
-                    t.easting,
-                    t.northing,
-                    t.utm_zone,
-                    t.lat,
-                    t.lon,
-                    _real(t.width_m),
-                    _real(t.height_m),
-                    t.ndvi,
-                    t.observations,
-                    t.first_seen,
-                    t.last_seen,
-                    t.status,
-                )
+                (t.tree_id or f"missing:{t.field_id}", t.field_id, t.row, *_measured(t), t.status)
                 for t in trees
             ],
         )
+
+    @contextlib.contextmanager
+    def _transaction(self):
+        """BEGIN ... COMMIT, rolled back if anything in between fails."""
+        self._db.execute("BEGIN")
+        try:
+            yield
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        self._db.execute("COMMIT")
 
     def rollback(self) -> None:
         """End a transaction left open by a failed write (SQLite may leave one open after
@@ -183,14 +151,6 @@ class TraitStore:
         ).fetchall()
         return [Tree(*row) for row in rows]
 
-    def rejected(self) -> list[Tree]:
-        rows = self._db.execute(
-            "SELECT tree_id, easting, northing, utm_zone, lat, lon, width_m, height_m, ndvi, "
-            "observations, first_seen, last_seen, NULL, NULL, 'rejected', reason "
-            "FROM rejected ORDER BY tree_id"
-        ).fetchall()
-        return [Tree(*row) for row in rows]
-
     def observation_count(self) -> int:
         return self._db.execute("SELECT COUNT(*) FROM observations").fetchone()[0]
 
@@ -203,6 +163,24 @@ class TraitStore:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _measured(t: Tree) -> tuple:
+    """A tree's columns from `easting` to `last_seen`, as the trees and rejected tables
+    hold them (an unmeasured trait, NaN, as NULL)."""
+    return (
+        t.easting,
+        t.northing,
+        t.utm_zone,
+        t.lat,
+        t.lon,
+        _real(t.width_m),
+        _real(t.height_m),
+        t.ndvi,
+        t.observations,
+        t.first_seen,
+        t.last_seen,
+    )
 
 
 def _real(value: float | None) -> float | None:

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from treetraits.drivers.records import Scan
@@ -74,3 +75,22 @@ def decode_calls(monkeypatch):
 
     monkeypatch.setattr(cv2, "imdecode", counting)
     return calls
+
+
+def first_complete_scan(scene, T_base_lidar, rng, seconds: float = 0.35):
+    """The first complete scan the twin's VLP-16 emulator sends from a robot standing at
+    the origin (yaw 0), decoded by our own batcher."""
+    from treetraits.drivers.velodyne.batcher import ScanBatcher
+    from treetraits.sim.lidar import Vlp16Emulator
+
+    def standing(t):
+        zeros = np.zeros(t.shape)
+        return zeros, zeros, zeros, zeros
+
+    batcher = ScanBatcher()
+    emulator = Vlp16Emulator(scene, T_base_lidar, rng=rng)
+    for t_device, payload in emulator.packets(standing, 0, int(seconds * 1e9)):
+        scan = batcher.push(payload, t_device)
+        if scan is not None and scan.complete:
+            return scan
+    raise AssertionError("no complete scan")

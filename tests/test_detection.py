@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
+from tests.conftest import first_complete_scan
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.drivers.records import POINT_DTYPE
-from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.pipeline.config import ClusterConfig, CropConfig, DetectionConfig, GroundConfig
 from treetraits.pipeline.detection import (
     FLAT,
@@ -25,7 +25,7 @@ from treetraits.pipeline.detection import (
     to_base,
     voxel_grid,
 )
-from treetraits.sim.lidar import Scene, Vlp16Emulator
+from treetraits.sim.lidar import Scene
 from treetraits.sim.orchard import Ground, TreeSpec, ground_mesh, measure_truth, tree_mesh
 
 LIDAR_HEIGHT = DEFAULT_T_BASE_LIDAR[2, 3]
@@ -228,15 +228,7 @@ def tree_scene():
         scene.add(vertices, triangles, label=i + 1)
         truths.append(measure_truth(spec, vertices, ground))
 
-    def standing(t):
-        return np.zeros(t.shape), np.zeros(t.shape), np.zeros(t.shape), np.zeros(t.shape)
-
-    batcher, scans = ScanBatcher(), []
-    emulator = Vlp16Emulator(scene, DEFAULT_T_BASE_LIDAR, rng=rng)
-    for t_device, payload in emulator.packets(standing, 0, int(0.35e9)):
-        if (scan := batcher.push(payload, t_device)) is not None and scan.complete:
-            scans.append(scan)
-    return scans[0], truths
+    return first_complete_scan(scene, DEFAULT_T_BASE_LIDAR, rng), truths
 
 
 @pytest.fixture(scope="module")

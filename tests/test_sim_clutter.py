@@ -5,6 +5,7 @@ hedgerow, irregular and missing trees in the truth."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 
@@ -129,16 +130,7 @@ def test_objects_and_missing_trees_in_the_files_beside_the_recording(tmp_path):
         rows=1,
         goal=7.0,
         trees=TreeSettings(missing=1),
-        clutter=ClutterSettings(
-            weeds=10,
-            drip_lines="hung",
-            posts=True,
-            wires=True,
-            standing_people=1,
-            walking_people=1,
-            vehicle=True,
-            wall=True,
-        ),
+        clutter=dataclasses.replace(EVERYTHING, weeds=10, drip_lines="hung"),
     )
     survey = simulate_survey(tmp_path / "c.mcap", settings)
     with open(survey.objects_csv) as f:

@@ -10,12 +10,12 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from tests.conftest import first_complete_scan
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
-from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.pipeline.config import DetectionConfig, TerrainConfig
 from treetraits.pipeline.detection import crop_mask, detect, to_base
 from treetraits.pipeline.terrain import fit_terrain
-from treetraits.sim.lidar import Scene, Vlp16Emulator
+from treetraits.sim.lidar import Scene
 from treetraits.sim.orchard import TreeSpec, tree_mesh
 
 
@@ -74,17 +74,7 @@ def one_scan(ground, base_from_world_tilt: np.ndarray | None = None):
         mount[:3, :3] = base_from_world_tilt @ mount[:3, :3]
         mount[:3, 3] = base_from_world_tilt @ mount[:3, 3]
 
-    def standing(t):
-        zeros = np.zeros(t.shape)
-        return zeros, zeros, zeros, zeros
-
-    batcher = ScanBatcher()
-    emulator = Vlp16Emulator(scene, mount, rng=rng)
-    for t_device, payload in emulator.packets(standing, 0, int(0.35e9)):
-        scan = batcher.push(payload, t_device)
-        if scan is not None and scan.complete:
-            return scan
-    raise AssertionError("no complete scan")
+    return first_complete_scan(scene, mount, rng)
 
 
 def ground_truth_in_base(ground, tilt: np.ndarray, x: float, y: float) -> float:
