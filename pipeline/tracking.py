@@ -4,8 +4,12 @@
 The state is m = [x, y, z, num_points, mean NDVI] with F = H = Q = I5, R = 0.1 I5 and a
 new tree at x = m_k, P = I5. For each cluster k and tree j: the innovation m_k - H x_j,
 normalised to a percentage change, its Mahalanobis distance d under S = H P H^T + R,
-p = exp(-0.1 d); the cluster goes to the most probable tree when p_max > th_p and the
-entropy (log base M) of the normalised probabilities is < th_H, else it starts a tree.
+p = exp(-0.1 d). A cluster may join a tree when p > th_p and the entropy (log base M) of
+its normalised probabilities is < th_H (the paper's gate); clusters and trees are then
+paired by one global assignment per scan on the cost d over the gated pairs (the paper
+takes each cluster's most probable tree, which lets two clusters claim one tree while
+another goes without). A gated cluster left without a tree is a piece of a tree that
+took another (dropped); an ungated one starts a tree.
 
 Trees live in a "map" frame: the world (odom/utm) when poses are known, where standing
 trees do not move; else the LiDAR frame, moved every scan by the robot's motion (the
@@ -105,6 +109,30 @@ def normalised_entropy(log_p: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class ScanSet:
+    """The scans (by index in the run) a tree was seen in: a bit set from the first one.
+    A merge takes the union, so a tree never counts more scans than the run has; a tree
+    seen over a few hundred scans costs a few dozen bytes."""
+
+    first: int
+    bits: int = 1
+
+    def add(self, index: int) -> None:
+        if index < self.first:
+            self.bits <<= self.first - index
+            self.first = index
+        self.bits |= 1 << (index - self.first)
+
+    def union(self, other: ScanSet) -> None:
+        first = min(self.first, other.first)
+        self.bits = (self.bits << (self.first - first)) | (other.bits << (other.first - first))
+        self.first = first
+
+    def __len__(self) -> int:
+        return bin(self.bits).count("1")
+
+
+@dataclass
 class Track:
     """One tree in memory: its Kalman filter and its bookkeeping."""
 
@@ -113,11 +141,16 @@ class Track:
     has_ndvi: bool
     first_seen: int
     last_seen: int
-    observations: int = 1
+    scans: ScanSet
 
     @property
     def state(self) -> np.ndarray:
         return self.kf.x[:, 0]
+
+    @property
+    def observations(self) -> int:
+        """Scans this tree was seen in."""
+        return len(self.scans)
 
 
 @dataclass(frozen=True)
@@ -144,6 +177,7 @@ class Tracker:
         self.config = config
         self.tracks: list[Track] = []
         self._next_id = 1
+        self._scan = -1  # index of the current scan in the run
 
     def positions(self) -> np.ndarray:
         return np.array([t.state[:3] for t in self.tracks]).reshape(-1, 3)
@@ -167,6 +201,7 @@ class Tracker:
         `sensor_from_map` the LiDAR frame now, `in_view` one bool per track (who could be
         seen). Returns one Decision per measurement, in order."""
         cfg = self.config
+        self._scan += 1
         active = [tr for tr, seen in zip(self.tracks, in_view, strict=True) if seen]
         # Predict the trees that can be seen, once per scan (F = I, Q = q I): standing
         # trees do not move in the map frame; their uncertainty grows.
@@ -175,24 +210,20 @@ class Tracker:
         k, m = len(measurements), len(active)
         p_max = np.full(k, np.nan)
         entropy = np.full(k, np.nan)
-        best = np.full(k, -1)
+        gated = np.zeros((k, m), dtype=bool)
+        log_p = np.full((k, m), -np.inf)
         if k and m:
-            best, p_max, entropy = self._gate(measurements, active, sensor_from_map)
-        associate = (best >= 0) & (p_max > cfg.th_p) & (entropy < cfg.th_h)
-        if cfg.max_association_m > 0 and k and m:
-            predicted = np.array([tr.state[:2] for tr in active])[np.maximum(best, 0)]
-            jump = np.hypot(*(measurements[:, :2] - predicted).T)
-            associate &= jump < cfg.max_association_m
+            log_p, entropy = self._gate(measurements, active, sensor_from_map)
+            p_max = np.exp(log_p.max(axis=1))
+            gated = (np.exp(log_p) > cfg.th_p) & (entropy < cfg.th_h)[:, None]
+            if cfg.max_association_m > 0:
+                predicted = np.array([tr.state[:2] for tr in active])
+                jump = np.hypot(*(measurements[:, None, :2] - predicted[None, :, :]).T).T
+                gated &= jump < cfg.max_association_m
+        taken = _assign(gated, -log_p)
 
-        # Each tree takes at most one cluster per scan: the likeliest (ties: the first).
-        # The others are dropped, not made new trees: a second cluster that looks like a
-        # known tree is a piece of it (a split crown), not a tree of its own.
-        taken: dict[int, int] = {}
-        for index in np.argsort(-np.where(associate, p_max, -np.inf), kind="stable"):
-            if associate[index] and best[index] not in taken:
-                taken[int(best[index])] = int(index)
         decisions: list[Decision | None] = [None] * k
-        for j, index in taken.items():
+        for index, j in taken:
             track = active[j]
             self._update(track, measurements[index], t)
             decisions[index] = Decision(track.tree_id, "updated", p_max[index], entropy[index])
@@ -201,8 +232,10 @@ class Tracker:
         for index in range(k):
             if decisions[index] is not None:
                 continue
-            if associate[index]:
-                tree_id = active[int(best[index])].tree_id
+            if gated[index].any():
+                # It looks like a tree in view that took a likelier cluster: a piece of it.
+                j = int(np.argmax(np.where(gated[index], log_p[index], -np.inf)))
+                tree_id = active[j].tree_id
                 decisions[index] = Decision(tree_id, "duplicate", p_max[index], entropy[index])
                 continue
             track = self._create(measurements[index], t)
@@ -231,9 +264,7 @@ class Tracker:
         used[:, :, NDVI] = np.isfinite(measurements[:, NDVI])[:, None] & has_tree_ndvi[None, :]
         S = np.array([tr.kf.P for tr in active]) + cfg.r * np.eye(DIM)  # H P H^T + R, H = I
         log_p = -cfg.prob_scale * mahalanobis(innovation, S, used)
-        best = np.argmax(log_p, axis=1)
-        p_max = np.exp(log_p[np.arange(len(best)), best])
-        return best, p_max, normalised_entropy(log_p)
+        return log_p, normalised_entropy(log_p)
 
     def _create(self, m: np.ndarray, t: int) -> Track:
         from filterpy.kalman import KalmanFilter
@@ -247,7 +278,7 @@ class Tracker:
         kf.H = np.eye(DIM)
         kf.Q = np.eye(DIM) * cfg.q
         kf.R = np.eye(DIM) * cfg.r
-        track = Track(self._next_id, kf, has_ndvi, t, t)
+        track = Track(self._next_id, kf, has_ndvi, t, t, ScanSet(self._scan))
         self._next_id += 1
         self.tracks.append(track)
         return track
@@ -267,12 +298,13 @@ class Tracker:
         else:  # a missing component is not measured: H and R keep the measured rows only
             H = np.eye(DIM)[measured]
             track.kf.update(m[measured].reshape(-1, 1), R=np.eye(len(H)) * cfg.r, H=H)
-        track.observations += 1
+        track.scans.add(self._scan)
         track.last_seen = t
 
     def _merge(self, in_view: np.ndarray) -> list[tuple[int, int]]:
         """Trees in view closer than merge_distance_m (x-y) are one: the older (lower id)
-        keeps its id and takes the newer's state if that was seen more recently."""
+        keeps its id; the two estimates are fused by their covariances and the tree keeps
+        the union of their scans."""
         limit = self.config.merge_distance_m
         if limit <= 0 or len(self.tracks) < 2:
             return []
@@ -291,11 +323,8 @@ class Tracker:
             keep, drop = self.tracks[index[a]], self.tracks[index[b]]
             if float(np.hypot(*(keep.state[:2] - drop.state[:2]))) >= limit:
                 continue  # `keep` took another tree's state above and moved away
-            if drop.last_seen > keep.last_seen or (
-                drop.last_seen == keep.last_seen and drop.observations > keep.observations
-            ):
-                keep.kf, keep.has_ndvi = drop.kf, drop.has_ndvi
-            keep.observations += drop.observations
+            fuse_estimates(keep, drop)
+            keep.scans.union(drop.scans)
             keep.first_seen = min(keep.first_seen, drop.first_seen)
             keep.last_seen = max(keep.last_seen, drop.last_seen)
             merged.append((keep.tree_id, drop.tree_id))
@@ -303,3 +332,44 @@ class Tracker:
         dropped = {int(index[b]) for b in gone}
         self.tracks = [tr for i, tr in enumerate(self.tracks) if i not in dropped]
         return merged
+
+
+def _assign(gated: np.ndarray, cost: np.ndarray) -> list[tuple[int, int]]:
+    """(cluster, tree) pairs of least total cost, each at most once, over gated pairs only."""
+    if not gated.any():
+        return []
+    from scipy.optimize import linear_sum_assignment
+
+    rows = np.flatnonzero(gated.any(axis=1))
+    cols = np.flatnonzero(gated.any(axis=0))
+    sub_gated = gated[np.ix_(rows, cols)]
+    # Pairs outside the gate cost more than any set of gated pairs could: the solver then
+    # takes as many gated pairs as it can, and those it is left with are dropped.
+    sub_cost = np.where(sub_gated, cost[np.ix_(rows, cols)], 0.0)
+    forbidden = 1.0 + sub_cost.sum() + len(rows)
+    sub_cost = np.where(sub_gated, sub_cost, forbidden)
+    r, c = linear_sum_assignment(sub_cost)
+    return sorted(
+        (int(rows[i]), int(cols[j])) for i, j in zip(r, c, strict=True) if sub_gated[i, j]
+    )
+
+
+def fuse_estimates(keep: Track, drop: Track) -> None:
+    """Two estimates of one tree into `keep`: the covariance-weighted combination of the
+    components both have (x = x1 + K (x2 - x1), P = P1 - K P1, K = P1 (P1 + P2)^-1); an
+    NDVI only one of them has is taken as it is."""
+    x1, p1 = keep.kf.x[:, 0].copy(), keep.kf.P.copy()
+    x2, p2 = drop.kf.x[:, 0], drop.kf.P
+    both = list(range(NDVI)) + ([NDVI] if keep.has_ndvi and drop.has_ndvi else [])
+    block = np.ix_(both, both)
+    gain = p1[block] @ np.linalg.inv(p1[block] + p2[block])
+    x, p = x1.copy(), p1.copy()
+    x[both] = x1[both] + gain @ (x2[both] - x1[both])
+    p[block] = p1[block] - gain @ p1[block]
+    if drop.has_ndvi and not keep.has_ndvi:
+        x[NDVI] = x2[NDVI]
+        p[NDVI, :] = p[:, NDVI] = 0.0
+        p[NDVI, NDVI] = p2[NDVI, NDVI]
+        keep.has_ndvi = True
+    keep.kf.x = x.reshape(DIM, 1)
+    keep.kf.P = (p + p.T) / 2

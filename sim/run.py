@@ -68,6 +68,10 @@ class SurveySettings:
     # Shift of the orchard across the path (m): with an odd number of columns the centre
     # lane would run through the middle column; half a spacing puts the lanes between.
     offset_y: float = 0.0
+    # Where the path's +x points in the world, degrees counter-clockwise from east: real
+    # blocks are planted at any bearing, and a heading or anchoring error that a field
+    # aligned with the grid hides (east-west errors all along x) shows once it is turned.
+    field_heading_deg: float = 0.0
     camera_rate_hz: float = 10.0
     camera: CameraSettings = field(default_factory=lambda: CameraSettings(render_scale=0.25))
     lidar: LidarSettings = field(default_factory=LidarSettings)
@@ -99,6 +103,34 @@ class World:
     trees: list[TreeTruth]
     ground: Ground
     objects: tuple[ObjectTruth, ...]
+
+
+@dataclass(frozen=True)
+class Placement:
+    """The twin's local frame (x along the path) in UTM: an origin and a bearing."""
+
+    origin: tuple[float, float] = ORIGIN_UTM
+    heading_rad: float = 0.0
+
+    def utm(self, x: float, y: float) -> tuple[float, float]:
+        c, s = math.cos(self.heading_rad), math.sin(self.heading_rad)
+        return self.origin[0] + c * x - s * y, self.origin[1] + s * x + c * y
+
+    def offset(self, x: float, y: float, yaw: float) -> tuple[float, float, float]:
+        """A local pose as (east, north) from the origin and a yaw from east."""
+        easting, northing = self.utm(x, y)
+        return easting - self.origin[0], northing - self.origin[1], yaw + self.heading_rad
+
+
+def placement(settings: SurveySettings) -> Placement:
+    return Placement(ORIGIN_UTM, math.radians(settings.field_heading_deg))
+
+
+def with_antenna(calibration: Calibration, xyz: tuple[float, float, float]) -> Calibration:
+    """The calibration with the GNSS antenna moved to `xyz` (metres in base_link)."""
+    T_base_gnss = np.array(calibration.T_base_gnss, dtype=float)
+    T_base_gnss[:3, 3] = xyz
+    return replace(calibration, T_base_gnss=T_base_gnss)
 
 
 def make_ground(settings: SurveySettings) -> Ground:
@@ -254,6 +286,7 @@ def simulate_survey(
         return tuple(float(v) for v in pose_at(np.asarray(t_ns)))
 
     zone = UtmZone(UTM_ZONE)
+    place = placement(s)
     lidar = Vlp16Emulator(scene, calibration.T_base_lidar, s.lidar, rng)
     camera = Survey3Emulator(scene, calibration, s.camera, rng) if calibration.camera else None
     gnss = GnssEmulator(zone, ORIGIN_UTM, calibration.T_base_gnss, s.gnss, rng)
@@ -289,7 +322,10 @@ def simulate_survey(
         previous = (x, y)
         utc = START_UTC + dt.timedelta(microseconds=(int(t) - t0_ns) // 1000)
         attitude = None if level else (z, *tilt)
-        for sentence in gnss.epoch((int(t) - t0_ns) / 1e9, utc, x, y, yaw, speed, attitude):
+        east, north, bearing = place.offset(x, y, yaw)
+        for sentence in gnss.epoch(
+            (int(t) - t0_ns) / 1e9, utc, east, north, bearing, speed, attitude
+        ):
             messages.append((int(t) + LATENCY_NS["gnss"], rec.GNSS_NMEA, sentence, int(t)))
     messages.append((t0_ns, rec.WHEELS_JACKAL, mcu.handshake(), t0_ns))
     for t in np.arange(t0_ns, t_end, int(1e9 / s.wheels.rate_hz)):
@@ -308,9 +344,9 @@ def simulate_survey(
     truth_csv = out.with_suffix(".truth.csv")
     field_map = out.with_suffix(".field_map.geojson")
     objects_csv = out.with_suffix(".objects.csv")
-    _write_truth(truth_csv, truths, zone)
-    _write_objects(objects_csv, world.objects, zone)
-    geojson = _field_map(truths, zone)
+    _write_truth(truth_csv, truths, zone, place)
+    _write_objects(objects_csv, world.objects, place)
+    geojson = _field_map(truths, zone, place)
     field_map.write_text(json.dumps(geojson, indent=1))
     counts: dict[str, int] = {}
     with rec.RecordingWriter(out, calibration=calibration.to_json(), overwrite=True) as writer:
@@ -325,7 +361,7 @@ def simulate_survey(
     )
 
 
-def _write_truth(path: Path, truths: list[TreeTruth], zone: UtmZone) -> None:
+def _write_truth(path: Path, truths: list[TreeTruth], zone: UtmZone, place: Placement) -> None:
     with open(path, "w", newline="") as f:
         out = csv.writer(f)
         out.writerow(
@@ -345,7 +381,7 @@ def _write_truth(path: Path, truths: list[TreeTruth], zone: UtmZone) -> None:
             ]
         )
         for t in truths:
-            easting, northing = ORIGIN_UTM[0] + t.x, ORIGIN_UTM[1] + t.y
+            easting, northing = place.utm(t.x, t.y)
             lat, lon = zone.inverse(easting, northing)
             out.writerow(
                 [
@@ -375,40 +411,41 @@ OBJECT_COLUMNS = (
     "size_m",  # largest horizontal extent
     "length_m",  # footprint: a segment of this length through (x, y) along heading_deg
     "width_m",  # and this wide across it
-    "heading_deg",  # ccw from +x (east)
+    "heading_deg",  # ccw from east
     "height_m",  # top above the ground
     "label",  # the mesh's label in the scene
 )
 
 
-def _write_objects(path: Path, objects, zone: UtmZone) -> None:
+def _write_objects(path: Path, objects, place: Placement) -> None:
     """`<stem>.objects.csv`: every non-tree object (a header only when there are none)."""
     with open(path, "w", newline="") as f:
         out = csv.writer(f)
         out.writerow(OBJECT_COLUMNS)
         for o in objects:
+            easting, northing = place.utm(o.x, o.y)
             out.writerow(
                 [
                     o.object_id,
                     o.kind,
                     f"{o.x:.3f}",
                     f"{o.y:.3f}",
-                    f"{ORIGIN_UTM[0] + o.x:.3f}",
-                    f"{ORIGIN_UTM[1] + o.y:.3f}",
+                    f"{easting:.3f}",
+                    f"{northing:.3f}",
                     f"{o.size:.3f}",
                     f"{o.length:.3f}",
                     f"{o.width:.3f}",
-                    f"{math.degrees(o.heading):.1f}",
+                    f"{math.degrees(o.heading + place.heading_rad):.1f}",
                     f"{o.height:.3f}",
                     o.label,
                 ]
             )
 
 
-def _field_map(truths: list[TreeTruth], zone: UtmZone) -> dict:
+def _field_map(truths: list[TreeTruth], zone: UtmZone, place: Placement) -> dict:
     features = []
     for t in truths:
-        lat, lon = zone.inverse(ORIGIN_UTM[0] + t.x, ORIGIN_UTM[1] + t.y)
+        lat, lon = zone.inverse(*place.utm(t.x, t.y))
         features.append(
             {
                 "type": "Feature",

@@ -12,11 +12,12 @@ import pytest
 
 from tests.conftest import CONTRACT_CSV_COLUMNS
 from treetraits.cli import main
+from treetraits.drivers.calibration import load_calibration
 from treetraits.service.config import ServiceConfig, with_method
 from treetraits.service.replay import ReplayOptions, run_replay
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.orchard import TreeSettings
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import DEFAULT_CALIBRATION, SurveySettings, simulate_survey, with_antenna
 
 
 @pytest.fixture(scope="module")
@@ -167,3 +168,36 @@ def test_a_field_map_tree_passed_and_not_found_is_missing(tmp_path):
     stored = db.execute("SELECT field_id FROM trees WHERE status = 'missing'").fetchall()
     assert {r[0] for r in stored} == absent
     assert json.loads((out / "rejected.geojson").read_text())["type"] == "FeatureCollection"
+
+
+def test_a_turned_block_with_the_antenna_off_centre_maps_in_place(tmp_path):
+    """A block planted at 112 deg from east, the antenna 1 m behind and 0.6 m right of
+    the centre, an S path that starts turning: every tree where it stands (a constant
+    offset from the lever arm, the heading or the datum would move all of them one way),
+    and no tree observed in more scans than the run has."""
+    settings = SurveySettings(
+        path="s",
+        width=5.0,
+        length=4.0,
+        columns=2,
+        rows=2,
+        goal=10.0,
+        seed=2,
+        field_heading_deg=112.0,
+    )
+    calibration = with_antenna(load_calibration(DEFAULT_CALIBRATION), (-1.0, -0.6, 0.5))
+    survey = simulate_survey(tmp_path / "turned.mcap", settings, calibration)
+    report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
+    truth = truth_rows(survey)
+    assert sorted(t.field_id for t in report.trees) == sorted(truth)
+    offsets = [
+        (
+            t.easting - float(truth[t.field_id]["easting"]),
+            t.northing - float(truth[t.field_id]["northing"]),
+        )
+        for t in report.trees
+    ]
+    # Measured: at most 0.15 m per tree, the mean offset under 0.1 m.
+    assert max(math.hypot(*o) for o in offsets) < 0.3
+    assert math.hypot(*(sum(o[i] for o in offsets) / len(offsets) for i in (0, 1))) < 0.15
+    assert all(t.observations <= report.summary["scans"] for t in report.trees)

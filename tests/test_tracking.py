@@ -4,6 +4,7 @@ entropy gate, duplicate pairs, missing NDVI, the B-matrix motion and the merge."
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -183,14 +184,43 @@ def test_merge_collapses_one_tree_seen_twice():
     tr = tracker()
     step(tr, [[5.0, 2.0, 1.0, 300, 0.7], [9.0, 2.0, 1.0, 300, 0.7]], t=1)
     # A cluster 0.9 m off (18 %): the gate starts a new tree; it lies within 1.5 m of
-    # tree 1, so tree 1 keeps its id and takes the newer state. The decision names the
-    # tree that remains.
+    # tree 1, so tree 1 keeps its id and the two estimates are fused by their covariances:
+    # tree 1 predicted to P = p0 + q = 2, the new tree at P = p0 = 1, so the fused x is
+    # 5.0 + 0.9 * 2 / 3 and its variance 2 - 2 * 2 / 3. The decision names the tree that
+    # remains; it was seen in two scans.
     result = step(tr, [[5.9, 2.0, 1.0, 300, 0.7]], t=2)
     assert result.decisions[0].outcome == "merged" and result.decisions[0].tree_id == 1
     assert result.merged == [(1, 3)]
     assert [t.tree_id for t in tr.tracks] == [1, 2]
-    assert tr.tracks[0].state[0] == pytest.approx(5.9)
+    assert tr.tracks[0].state[0] == pytest.approx(5.6)
+    assert tr.tracks[0].kf.P[0, 0] == pytest.approx(2 / 3)
     assert tr.tracks[0].observations == 2 and tr.tracks[0].last_seen == 2
+
+
+def test_a_merge_counts_a_scan_both_trees_were_seen_in_once():
+    """Two pieces of one crown tracked apart in the same scans, then merged: the tree was
+    seen in those scans once each (the paper's count would add the two)."""
+    tr = tracker(merge_distance_m=0)
+    for t in range(1, 4):
+        step(tr, [[5.0, 2.0, 1.0, 300, 0.7], [5.0, 4.0, 1.0, 300, 0.7]], t=t)
+    assert [track.observations for track in tr.tracks] == [3, 3]
+    tr.config = dataclasses.replace(tr.config, merge_distance_m=2.5)
+    result = step(tr, [[5.0, 2.0, 1.0, 300, 0.7]], t=4)
+    assert result.merged == [(1, 2)]
+    assert len(tr.tracks) == 1 and tr.tracks[0].observations == 4
+
+
+def test_clusters_and_trees_are_paired_as_a_whole():
+    """Two clusters both likeliest for tree 1 (0 and 0.1 m from it), the second also within
+    the gate of tree 2 (0.2 m): each cluster to its likeliest tree would give tree 1 the
+    first and drop the second as its piece; the global assignment gives each tree one."""
+    tr = tracker(merge_distance_m=0, max_association_m=1.5)
+    # Eight more trees far off: with M = 10 a cluster torn between two trees still passes
+    # the entropy gate (log base M), as in a grove.
+    far = [[30.0 + 6 * i, -8.0, 1.0, 300, 0.7] for i in range(8)]
+    step(tr, [[5.0, 2.0, 1.0, 300, 0.7], [5.0, 2.3, 1.0, 300, 0.7], *far], t=1)
+    result = step(tr, [[5.0, 2.0, 1.0, 300, 0.7], [5.0, 2.1, 1.0, 300, 0.7]], t=2)
+    assert [(d.outcome, d.tree_id) for d in result.decisions] == [("updated", 1), ("updated", 2)]
 
 
 def test_b_matrix_motion_keeps_standing_trees_standing():

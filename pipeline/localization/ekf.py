@@ -30,6 +30,12 @@ def _wrap_yaw_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return residual
 
 
+def rotate_xy(vector: np.ndarray, yaw: float) -> np.ndarray:
+    """A robot-frame (x forward, y left) vector in the grid, at heading `yaw`."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]])
+
+
 class PoseFilter:
     """x = [x, y, yaw]; all angles ENU (counter-clockwise from east), metres."""
 
@@ -108,8 +114,14 @@ class PoseFilter:
     def yaw_sigma(self) -> float:
         return math.sqrt(max(float(self._ekf.P[2, 2]), 0.0))
 
-    def reset_yaw(self, yaw: float, sigma: float) -> None:
-        """Take a heading as it is, forgetting the old one and its correlations."""
+    def reset_yaw(self, yaw: float, sigma: float, lever_arm: np.ndarray | None = None) -> None:
+        """Take a heading as it is, forgetting the old one and its correlations. With the
+        antenna's `lever_arm` (x forward, y left), the robot turns about the antenna, not
+        about its centre: the antenna's position is what the fixes measured, and the centre
+        was placed from it with the old heading."""
+        if lever_arm is not None:
+            old, new = float(self._ekf.x[2]), wrap_angle(yaw)
+            self._ekf.x[:2] += rotate_xy(lever_arm, old) - rotate_xy(lever_arm, new)
         self._ekf.x[2] = wrap_angle(yaw)
         self._ekf.P[2, :] = 0.0
         self._ekf.P[:, 2] = 0.0

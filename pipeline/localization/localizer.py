@@ -22,7 +22,7 @@ import numpy as np
 
 from treetraits.drivers.records import Fix, Pose, WheelSample
 from treetraits.pipeline.localization.config import LocalizationConfig, WheelGeometry
-from treetraits.pipeline.localization.ekf import PoseFilter
+from treetraits.pipeline.localization.ekf import PoseFilter, rotate_xy
 from treetraits.pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw, wrap_angle
 
 # A wheel step implying more than this speed is a counter reset, not motion.
@@ -262,7 +262,7 @@ class Localizer:
     def _add_heading(self, yaw: float, sigma: float, kind: str) -> None:
         applied = False
         if not self.heading_known:
-            self._filter.reset_yaw(yaw, sigma)
+            self._filter.reset_yaw(yaw, sigma, self._lever_arm)
             self.stats.heading_resets += 1
             applied = True
         else:
@@ -274,7 +274,7 @@ class Localizer:
                 # Several headings in a row disagree with ours: ours is what went wrong.
                 self._headings_rejected_in_a_row += 1
                 if self._headings_rejected_in_a_row >= self.config.max_rejected_in_a_row:
-                    self._filter.reset_yaw(yaw, sigma)
+                    self._filter.reset_yaw(yaw, sigma, self._lever_arm)
                     self._headings_rejected_in_a_row = 0
                     self.stats.heading_resets += 1
                     applied = True
@@ -286,9 +286,11 @@ class Localizer:
         yaw, yaw_sigma = (
             (heading[0], heading[1]) if heading else (c.initial_yaw_rad, c.initial_yaw_sigma_rad)
         )
-        base = np.array([easting, northing]) - _rotate(self._lever_arm, yaw)
+        base = np.array([easting, northing]) - rotate_xy(self._lever_arm, yaw)
         p = np.zeros((3, 3))
         p[:2, :2] = covariance
+        if heading is None:  # the centre lies anywhere on a circle of the lever's length
+            p[:2, :2] += np.eye(2) * float(self._lever_arm @ self._lever_arm)
         p[2, 2] = yaw_sigma**2
         self._filter = PoseFilter(base[0], base[1], yaw, p)
         self.stats.fixes_used += 1
@@ -313,7 +315,7 @@ class Localizer:
             return FixVerdict(False, "rejected", result.mahalanobis2)
         # Several good fixes in a row disagree with us: our dead reckoning is what drifted.
         yaw = self._filter.state[2]
-        base = np.array([easting, northing]) - _rotate(self._lever_arm, yaw)
+        base = np.array([easting, northing]) - rotate_xy(self._lever_arm, yaw)
         self._filter.reset_position(base[0], base[1], covariance)
         self._rejected_in_a_row = 0
         self.stats.position_resets += 1
@@ -347,11 +349,6 @@ def _append(history: _History, t: int, pose: tuple, keep_s: float) -> None:
     while history.times and t - history.times[0] > keep_s * 1e9:
         history.times.popleft()
         history.poses.popleft()
-
-
-def _rotate(vector: np.ndarray, yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]])
 
 
 def _se2(x: float, y: float, yaw: float) -> np.ndarray:

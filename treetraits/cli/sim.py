@@ -15,7 +15,7 @@ from treetraits.sim.clutter import ClutterSettings
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.orchard import TerrainSettings, TreeSettings, WindSettings
 from treetraits.sim.paths import PATHS
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import DEFAULT_CALIBRATION, SurveySettings, simulate_survey, with_antenna
 from treetraits.sim.wheels import WheelSettings
 
 QUALITIES = {"rtk": 4, "float": 5, "dgps": 2, "autonomous": 1}
@@ -90,6 +90,21 @@ def register(commands: argparse._SubParsersAction) -> None:
         metavar="DEG",
         help="where the wind blows towards, degrees counter-clockwise from the path's "
         "direction (default 90: across the path, to the left)",
+    )
+    sim.add_argument(
+        "--field-heading",
+        type=float,
+        default=0.0,
+        metavar="DEG",
+        help="where the rows point in the world, degrees counter-clockwise from east "
+        "(default 0); the truth, field map and GNSS turn with the block",
+    )
+    sim.add_argument(
+        "--antenna",
+        metavar="X,Y,Z",
+        help="the GNSS antenna's position on the robot in metres (x forward, y left, z up "
+        "from base_link), written into the recording's calibration (default: the "
+        "calibration's)",
     )
     ground = sim.add_argument_group("terrain (default: flat)")
     ground.add_argument(
@@ -203,6 +218,16 @@ def _pair(text: str, what: str, kind=float) -> tuple:
     return a, b
 
 
+def _antenna(text: str) -> tuple[float, float, float]:
+    try:
+        x, y, z = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--antenna must look like -0.18,0,0.53, got {text!r}") from None
+    for axis, value in zip("xyz", (x, y, z), strict=True):
+        _within(f"--antenna {axis}", value, -5, 5)
+    return x, y, z
+
+
 def _within(option: str, value: float, low: float, high: float) -> None:
     if not (math.isfinite(value) and low <= value <= high):
         raise ConfigError(f"{option} must be a finite number in [{low:g}, {high:g}], got {value}")
@@ -235,6 +260,7 @@ def run_sim(args: argparse.Namespace) -> int:
         raise ConfigError(f"--missing must be in [0, {columns * rows}] trees, got {args.missing}")
     if not 0 <= args.weeds <= 5000:
         raise ConfigError(f"--weeds is a number of clumps in [0, 5000], got {args.weeds}")
+    _within("--field-heading", args.field_heading, -360, 360)
     if args.wires and not args.posts:
         raise ConfigError("--wires hang between posts: add --posts")
     settings = SurveySettings(
@@ -246,6 +272,7 @@ def run_sim(args: argparse.Namespace) -> int:
         seed=args.seed,
         slope=args.slope,
         goal=args.goal,
+        field_heading_deg=args.field_heading,
         gnss=dataclasses.replace(
             GnssSettings(),
             quality=QUALITIES[args.gnss],
@@ -278,7 +305,9 @@ def run_sim(args: argparse.Namespace) -> int:
         ),
         wheels=dataclasses.replace(WheelSettings(), imu=not args.no_imu),
     )
-    calibration = load_calibration(args.calibration) if args.calibration else None
+    calibration = load_calibration(args.calibration or DEFAULT_CALIBRATION)
+    if args.antenna:
+        calibration = with_antenna(calibration, _antenna(args.antenna))
     with tqdm(total=100, desc="sim", unit="%", leave=False, disable=None) as bar:
 
         def progress(fraction: float) -> None:
