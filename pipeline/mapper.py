@@ -112,6 +112,15 @@ class TreeMapper:
         # returns are held where the motion says the first scan's LiDAR frame is now.
         self._traits_from_map = np.eye(4)
 
+    def reanchor(self, new_from_old: np.ndarray, frame: str) -> None:
+        """Move the whole map into another world frame (`new_from_old`, 4x4 rigid): a run
+        mapped in `odom` until its first fix is carried into `utm`, trees and accumulated
+        returns alike, and goes on there."""
+        self.tracker.move(new_from_old)
+        self._traits_from_map = self._traits_from_map @ np.linalg.inv(new_from_old)
+        self.frame = frame
+        self._last_pose = None
+
     def process(
         self,
         scan: Scan,

@@ -67,6 +67,7 @@ class RunWriter:
         # The robot's path, one point per metre driven (x, y, frame, t), for the field-map
         # trees it passed: a tree it never came near is not missing, just not surveyed.
         self._path: list[_PathPoint] = []
+        self._anchor = None  # the processor's odom -> utm re-anchoring last seen
         self.store_path = self.out_dir / STORE_NAME
         self.scans = 0  # scans committed
         self.exports = 0
@@ -95,7 +96,7 @@ class RunWriter:
             self.reported(),
             localizer.grid,
             field_map,
-            utm_from_odom=localizer.utm_from_odom,
+            utm_from_odom=self.processor.utm_from_odom,
             gate_m=self.match_gate_m,
             only=only,
         )
@@ -121,7 +122,12 @@ class RunWriter:
         ]
         self._follow(outcome)
         touched = {str(i) for i in (*result.created, *result.updated)}
-        trees = self.georeferenced(only=touched) if touched else []
+        if self.processor.anchor is not self._anchor:
+            # The map moved from odom to utm (a late first fix): every tree is placed anew.
+            self._anchor = self.processor.anchor
+            trees = self.georeferenced()
+        else:
+            trees = self.georeferenced(only=touched) if touched else []
         try:
             self.store.commit_scan(observations, trees)
         except sqlite3.Error as exc:
@@ -163,7 +169,7 @@ class RunWriter:
     def georeferenced_rejected(self) -> list[Tree]:
         localizer = self.processor.localizer
         return georeference(
-            self.rejected(), localizer.grid, (), utm_from_odom=localizer.utm_from_odom
+            self.rejected(), localizer.grid, (), utm_from_odom=self.processor.utm_from_odom
         )
 
     def missing(self, found: list[Tree]) -> list[Tree]:
@@ -172,7 +178,9 @@ class RunWriter:
         index = self._index()
         if index is None or not len(index) or not self._path:
             return []
-        path = georeference(self._path, localizer.grid, (), utm_from_odom=localizer.utm_from_odom)
+        path = georeference(
+            self._path, localizer.grid, (), utm_from_odom=self.processor.utm_from_odom
+        )
         xy = np.array([(p.easting, p.northing) for p in path if p.easting is not None])
         if not len(xy):
             return []

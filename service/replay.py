@@ -9,6 +9,8 @@ input and options give the same outputs.
 
 from __future__ import annotations
 
+import heapq
+import itertools
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -35,6 +37,9 @@ class ReplayOptions:
     field_map: Path | None = None
     calibration: Path | None = None
     nmea: Path | None = None  # with a pcap input
+    # Seconds added to the NMEA log's UTC to put it on the capture's clock (a logger whose
+    # clock was off), or "start": its first epoch at the capture's first packet.
+    nmea_offset: float | str = 0.0
 
 
 @dataclass(frozen=True)
@@ -45,8 +50,14 @@ class Input:
     size_bytes: int
 
 
-def open_input(path: Path, nmea: Path | None = None) -> Input:
-    """A recording, or a pcap/pcapng/raw LiDAR capture with an optional NMEA text log."""
+def open_input(
+    path: Path,
+    nmea: Path | None = None,
+    nmea_offset: float | str = 0.0,
+    gnss_latency_s: float = 0.0,
+) -> Input:
+    """A recording, or a pcap/pcapng/raw LiDAR capture with an optional NMEA text log
+    (`nmea_log_messages` places its sentences on the capture's clock)."""
     if not Path(path).is_file():
         raise SourceError(f"{path}: no such file (expected a recording or a LiDAR capture)")
     with open(path, "rb") as f:
@@ -68,34 +79,81 @@ def open_input(path: Path, nmea: Path | None = None) -> Input:
             field_map.data if field_map else None,
             path.stat().st_size,
         )
+    if nmea is not None and not Path(nmea).is_file():
+        raise SourceError(f"--nmea {nmea}: no such file")
 
     def capture_messages():
         source = open_source(path)
+        packets = iter(source)
+        first = next(packets, None)
+        if first is None:
+            source.close()
+            return
         lidar = (
             (rec.LIDAR_PACKETS if p.is_data else rec.LIDAR_TELEMETRY, p.payload, p.t_host, p.t_host)
-            for p in source
+            for p in itertools.chain([first], packets)
         )
-        yield from _merge(lidar, _nmea_lines(nmea) if nmea else iter(()))
+        gnss = iter(())
+        if nmea is not None:
+            gnss = nmea_log_messages(nmea, first.t_host, nmea_offset, gnss_latency_s)
+        yield from heapq.merge(lidar, gnss, key=lambda m: m[2])
         source.close()
 
     return Input(capture_messages(), None, None, path.stat().st_size)
 
 
-def _nmea_lines(path: Path):
-    """An NMEA log has no receive times: sentences keep their order and are stamped from the
-    LiDAR stream's clock by the merge (the log is taken to cover the same drive)."""
+def nmea_log_messages(
+    path: Path, capture_start_ns: int, offset: float | str, latency_s: float
+) -> Iterator[tuple[str, bytes, int, int]]:
+    """An NMEA log's sentences as recorded messages on the capture's clock. A log has no
+    receive times, but its sentences carry their UTC: each is stamped with its epoch's UTC
+    (`publish_time`; a log without dates takes the capture's) and received `latency_s`
+    later (`log_time`), after `offset` seconds are added ("start": the log's first epoch
+    at `capture_start_ns`). A log that ends before the capture starts is refused: its
+    fixes would all come before the first scan and place none of them."""
     from treetraits.drivers.gnss.sources import open_gnss_source
+    from treetraits.drivers.gnss.times import NmeaClock, sentence_time
 
-    source = open_gnss_source(path)
-    for sentence in source:
-        yield rec.GNSS_NMEA, sentence.raw, sentence.t_host, sentence.t_host
-    source.close()
+    def stamped():
+        """(sentence, its epoch's UTC or None before the log's first time)."""
+        clock = NmeaClock()
+        timed = False
+        source = open_gnss_source(path)
+        try:
+            # No receive times: every sentence is "read" at the capture's start, so the
+            # clock dates times of day without a date of their own by the capture's date.
+            for sentence in source:
+                utc = clock.stamp(sentence.raw, capture_start_ns)
+                timed = timed or sentence_time(sentence.raw).tod_ns is not None
+                yield sentence.raw, utc if timed else None
+        finally:
+            source.close()
+
+    first = last = None
+    for _, utc in stamped():  # a first pass for the log's span: text, quick to read
+        if utc is not None:
+            first = utc if first is None else first
+            last = utc
+    if first is None:
+        raise SourceError(f"--nmea {path}: no NMEA sentence with a time in it")
+    shift = capture_start_ns - first if offset == "start" else int(float(offset) * 1e9)
+    if last + shift < capture_start_ns:
+        raise SourceError(
+            f"--nmea {path}: the log ends ({_utc_text(last + shift)}) before the capture "
+            f"starts ({_utc_text(capture_start_ns)}); if the logger's clock was off, give "
+            "--nmea-offset SECONDS, or --nmea-offset start to begin both together"
+        )
+    latency = int(latency_s * 1e9)
+    for raw, utc in stamped():
+        # Sentences before the log's first time go with its first epoch.
+        placed = (first if utc is None else utc) + shift
+        yield rec.GNSS_NMEA, raw, placed + latency, placed
 
 
-def _merge(first, second):
-    import heapq
+def _utc_text(t_ns: int) -> str:
+    import datetime as dt
 
-    return heapq.merge(first, second, key=lambda m: m[2])
+    return dt.datetime.fromtimestamp(t_ns / 1e9, dt.UTC).isoformat(timespec="seconds")
 
 
 def make_mapper(config: ServiceConfig, calibration: Calibration):
@@ -132,7 +190,7 @@ def run_replay(
 ) -> ReplayReport:
     """Process `path` into `out_dir` (traits.sqlite, trees.geojson, trees.csv)."""
     cfg = options.config
-    source = open_input(path, options.nmea)
+    source = open_input(path, options.nmea, options.nmea_offset, cfg.localization.gnss_latency_s)
     if options.calibration is not None:
         calibration = load_calibration(options.calibration)
     elif source.calibration:
@@ -185,6 +243,7 @@ def run_replay(
             missing=len(exported.missing),
             rejected=dict(sorted(Counter(t.reason for t in exported.rejected).items())),
             world_frame=processor.world_frame,
+            reanchored_at=processor.stats.reanchored_at,
             utm_zone=processor.localizer.grid.name if processor.localizer.grid else None,
             scans_without_pose=processor.stats.scans_without_pose,
             scans_without_heading=processor.stats.scans_without_heading,

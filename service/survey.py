@@ -72,6 +72,7 @@ class SurveyStats:
     scans: int = 0
     scans_without_pose: int = 0
     scans_without_heading: int = 0  # in utm before the heading is known: not mapped
+    reanchored_at: int | None = None  # when the map moved from odom to utm (late fix)
     scans_skipped: int = 0  # could not be placed in the run's frame: not mapped (see _ready)
     frames: int = 0
     fixes: int = 0
@@ -108,6 +109,8 @@ class SurveyProcessor:
         self._frame_seen = None  # log_time of the newest frame, for FRAME_SILENCE_NS
         # The mapper's world frame, chosen once: "utm" when a fix comes in time, else "odom".
         self.world_frame: str | None = None
+        # (time, 3x3 utm_from_odom) when a run that began in odom moved to utm.
+        self.anchor: tuple[int, np.ndarray] | None = None
         self._mapped_with_pose: bool | None = None  # set by the first scan mapped
 
     def feed(self, topic: str, data: bytes, log_time: int, publish_time: int) -> list[ScanOutcome]:
@@ -137,6 +140,8 @@ class SurveyProcessor:
                     self.attitude.add_imu(
                         record.t_host, record.angular_velocity, record.linear_acceleration
                     )
+                    if (rate := self.attitude.yaw_rate) is not None:
+                        self.localizer.add_yaw_rate(record.t_host, rate)
             self._mcu.take_outgoing()  # a recording cannot answer the MCU
         elif topic == rec.WHEELS_BRIDGE:
             for record in self._bridge.push(data, log_time):
@@ -166,6 +171,35 @@ class SurveyProcessor:
     def _add_fix(self, fix: Fix) -> None:
         self.stats.fixes += 1
         self.localizer.add_fix(fix)
+
+    def utm_from_odom(self, t: int) -> np.ndarray | None:
+        """The 3x3 transform from `odom` to `utm` for what was at `t` in `odom`: the one the
+        map was re-anchored with, for anything before then (the map moved with it as one
+        piece); else the localiser's at `t`."""
+        if self.anchor is not None and t <= self.anchor[0]:
+            return self.anchor[1]
+        return self.localizer.utm_from_odom(t)
+
+    def _reanchor(self) -> None:
+        """A run mapping in `odom` (no fix when it started) moves its whole map to `utm`
+        once the localiser has a datum and knows its heading: trees already mapped move
+        with it, and later scans (the robot back along the same trees) land on them."""
+        if self.world_frame != "odom" or self.localizer.first_utm_time is None:
+            return
+        now = self.localizer.pose()
+        if now is None or now.frame != "utm" or not self._heading_known(now):
+            return
+        transform = self.localizer.utm_from_odom()
+        if transform is None:
+            return
+        new_from_old = np.eye(4)
+        new_from_old[:2, :2] = transform[:2, :2]
+        new_from_old[:2, 3] = transform[:2, 2]
+        if self.mapper.frame == "odom":
+            self.mapper.reanchor(new_from_old, "utm")
+        self.anchor = (now.t, transform)
+        self.world_frame = "utm"
+        self.stats.reanchored_at = now.t
 
     def _choose_frame(self, end_of_input: bool) -> bool:
         if self.world_frame is None:
@@ -276,6 +310,7 @@ class SurveyProcessor:
         out = []
         if not self._choose_frame(end_of_input):
             return out
+        self._reanchor()
         while self._pending and (end_of_input or self._settled(self._pending[0])):
             scan = self._pending.popleft()
             middle = scan_mid_time(scan)

@@ -10,7 +10,7 @@ import sqlite3
 
 import pytest
 
-from tests.conftest import CONTRACT_CSV_COLUMNS
+from tests.conftest import CONTRACT_CSV_COLUMNS, FIXTURES
 from treetraits.cli import main
 from treetraits.drivers.calibration import load_calibration
 from treetraits.service.config import ServiceConfig, with_method
@@ -201,3 +201,52 @@ def test_a_turned_block_with_the_antenna_off_centre_maps_in_place(tmp_path):
     assert max(math.hypot(*o) for o in offsets) < 0.3
     assert math.hypot(*(sum(o[i] for o in offsets) / len(offsets) for i in (0, 1))) < 0.15
     assert all(t.observations <= report.summary["scans"] for t in report.trees)
+
+
+def test_a_real_capture_with_a_real_nmea_log_is_placed_by_the_logs_utc(tmp_path, capsys):
+    """The VeloView VLP-16 capture (2014-11-04, an indoor scene) with the OxTS receiver's
+    log (2014-02-19, 10 Hz GGA, HDT): by their UTC they do not meet, which replay says
+    rather than mapping nothing; with the log's first epoch at the capture's first packet
+    the scans are placed in UTM where the receiver was (what is seen there is rejected,
+    not a tree, and listed with its position)."""
+    capture = FIXTURES / "vlp16" / "veloview_vlp16_20hz_strongest.pcap"
+    log = FIXTURES / "nmea" / "rst39.nmea"
+    facts = json.loads((FIXTURES / "nmea" / "expected_counts.json").read_text())
+    first_fix = facts["files"]["rst39.nmea"]["first_fix"]
+    out = tmp_path / "out"
+    assert main(["replay", str(capture), "--nmea", str(log), "--out", str(out)]) == 2
+    assert "before the capture starts" in capsys.readouterr().err
+
+    report = run_replay(capture, out, ReplayOptions(nmea=log, nmea_offset="start"))
+    summary = report.summary
+    assert summary["world_frame"] == "utm" and summary["utm_zone"] == "16N"
+    assert summary["fixes"] >= facts["files"]["rst39.nmea"]["valid_by_type"]["GGA"]
+    # Only the scans that end before the first epoch has arrived go without a pose.
+    assert summary["scans_without_pose"] <= 2 < summary["scans"]
+    assert report.trees == [] and report.rejected
+    for thing in report.rejected:
+        # The receiver drove 16 m in the 4 s of its log; the scene is a room: 60 m is far.
+        north = (thing.lat - first_fix["lat"]) * 111_000
+        east = (thing.lon - first_fix["lon"]) * 111_000 * math.cos(math.radians(thing.lat))
+        assert math.hypot(north, east) < 60
+
+
+def test_a_late_first_fix_moves_the_whole_map_to_utm(tmp_path):
+    """No fix for the first 14 s (a receiver still converging): the run maps in odom after
+    the 10 s wait, then moves its whole map to UTM when the fix and a heading come. Every
+    tree is placed and matched once, the ones mapped before the fix included."""
+    gnss = GnssSettings(outages=((0.0, 14.0),))
+    survey = simulate_survey(tmp_path / "late.mcap", SurveySettings(goal=16.0, seed=4, gnss=gnss))
+    report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
+    assert report.summary["world_frame"] == "utm"
+    assert report.summary["reanchored_at"] is not None
+    truth = truth_rows(survey)
+    assert sorted(t.field_id for t in report.trees) == sorted(truth)
+    for tree in report.trees:
+        expected = truth[tree.field_id]
+        gap = math.hypot(
+            tree.easting - float(expected["easting"]), tree.northing - float(expected["northing"])
+        )
+        assert gap < 0.5
+    db = sqlite3.connect(tmp_path / "out" / "traits.sqlite")
+    assert db.execute("SELECT COUNT(*) FROM trees WHERE easting IS NULL").fetchone()[0] == 0

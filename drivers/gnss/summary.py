@@ -71,6 +71,9 @@ class NmeaSummary:
     # stream has no GGA fix at all (the fixtures' definition).
     edge_fixes: dict[str, list[dict]] = field(default_factory=dict)
     utc_backwards: int = 0  # epochs whose UTC is earlier than the previous epoch's
+    # Arrival after the epoch's UTC (ns) of each dated epoch: the receiver's latency when
+    # the host clock was on UTC (a recording made with NTP), else a clock offset.
+    delays: list[int] = field(default_factory=list, repr=False)
     # (utc_ns or None, time of day) of the first and last epoch with a time
     _first_time: tuple[int | None, int] | None = field(default=None, init=False, repr=False)
     _last_time: tuple[int | None, int] | None = field(default=None, init=False, repr=False)
@@ -109,6 +112,8 @@ class NmeaSummary:
         return fix
 
     def _add_fix(self, fix: Fix) -> None:
+        if fix.utc_ns is not None:
+            self.delays.append(fix.t_host - fix.utc_ns)
         tod = self.assembler.last_tod_ns
         if tod is not None:
             now = (fix.utc_ns, tod)
@@ -159,11 +164,21 @@ class NmeaSummary:
             "last_utc": None if self._last_time is None else _time_text(*self._last_time),
             "duration_s": duration,
             "utc_backwards": self.utc_backwards,
+            "latency_ms": _latency_ms(self.delays),
         }
         facts.update({f"epochs_{k}": v for k, v in epochs.as_dict().items() if k != "epochs"})
         for key, value in counters.items():
             facts.setdefault(key, value)
         return facts
+
+
+def _latency_ms(delays: list[int]) -> float | None:
+    """The median arrival after UTC, when it can be a latency (0-1 s: the host clock was
+    on UTC); None for a log read now or a host clock off UTC."""
+    if not delays:
+        return None
+    median = sorted(delays)[len(delays) // 2] / 1e6
+    return round(median, 1) if 0 <= median <= 1000 else None
 
 
 def summarise(source: GnssSource, *, seconds: float | None = None, **options) -> dict:

@@ -189,7 +189,7 @@ class AttitudeFilter:
     @property
     def yaw_rate(self) -> float | None:
         """The latest bias-corrected turn rate about the world's vertical (rad/s): the
-        gyro's rate projected on up. Not fused into the heading yet."""
+        gyro's rate projected on up (the localiser's heading follows it)."""
         return self._yaw_rate
 
     # ---- internals ------------------------------------------------------------------------

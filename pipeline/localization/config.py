@@ -28,6 +28,14 @@ class LocalizationConfig:
     odom_yaw_sigma_per_sqrt_rad: float = 0.10
     odom_yaw_sigma_per_sqrt_m: float = math.radians(1.0)
 
+    # With a gyro (the Jackal MCU's IMU), the heading between wheel samples follows it.
+    # Its noise: angle random walk per sqrt(second) (a MEMS gyro's 0.01 deg/s/sqrt(Hz) is
+    # 2e-4; 1e-3 leaves room for the chassis' vibration) and the bias left after the
+    # at-rest learning (a MEMS bias wanders by ~0.3 deg/s with temperature; learned at
+    # each stop to ~0.005 rad/s).
+    gyro_yaw_sigma_per_sqrt_s: float = 1e-3
+    gyro_bias_sigma_rad_s: float = 0.005
+
     sigma_per_hdop: dict[int, float] = field(default_factory=lambda: dict(DEFAULT_SIGMA_PER_HDOP))
     # A GST sigma below this is not believed (multipath under canopy is not in GST).
     min_fix_sigma_m: float = 0.01
@@ -52,6 +60,18 @@ class LocalizationConfig:
     # from east; a stock Jackal has no earth-referenced heading) and how little we trust it.
     initial_yaw_rad: float = 0.0
     initial_yaw_sigma_rad: float = math.pi
+
+    # GNSS time. A fix describes the robot at its epoch's UTC; its sentences arrive later
+    # by the receiver's computation and the serial link (a u-blox F9P at 115200 baud:
+    # 30-60 ms; at 9600 baud a burst of GGA+RMC+GST takes 0.25 s alone); at 2 m/s, 60 ms
+    # is 12 cm along the path. When a fix arrives within this of its UTC the host clock
+    # is taken to be on UTC (NTP or PPS) and the fix is placed at its UTC: the delay is
+    # then measured, not assumed.
+    gnss_clock_tolerance_s: float = 1.0
+    # Else (a host clock that is not on UTC) the fix is placed this long before it
+    # arrived: a receiver's latency at 115200 baud. Measure yours: `treetraits nmea info`
+    # of a recording made with the host on NTP prints it.
+    gnss_latency_s: float = 0.05
 
     # Pose history kept for `pose_at`, seconds.
     history_s: float = 30.0
@@ -98,6 +118,8 @@ class LocalizationConfig:
             "odom_sigma_per_sqrt_m",
             "odom_yaw_sigma_per_sqrt_rad",
             "odom_yaw_sigma_per_sqrt_m",
+            "gyro_yaw_sigma_per_sqrt_s",
+            "gyro_bias_sigma_rad_s",
             "min_fix_sigma_m",
             "fix_gate_chi2",
             "heading_sigma_rad",
@@ -105,6 +127,7 @@ class LocalizationConfig:
             "known_yaw_sigma_rad",
             "initial_yaw_sigma_rad",
             "history_s",
+            "gnss_clock_tolerance_s",
             "attitude_time_constant_s",
             "attitude_accel_gate_mps2",
             "gyro_bias_time_constant_s",
@@ -117,7 +140,7 @@ class LocalizationConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"localization.{name} must be a finite number > 0, got {value}")
-        for name in ("cog_min_speed_mps", "cog_max_yaw_rate"):
+        for name in ("cog_min_speed_mps", "cog_max_yaw_rate", "gnss_latency_s"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"localization.{name} must be >= 0")
         if not isinstance(self.deskew, bool):

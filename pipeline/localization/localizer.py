@@ -48,10 +48,14 @@ class LocalizerStats:
     heading_resets: int = 0  # first heading once unknown, or several in a row disagreeing
     headings_used: int = 0
     courses_used: int = 0
+    gyro_samples: int = 0
+    latency_ms: float | None = None  # arrival of the last fix after its UTC, host on UTC
 
 
 # Wheel samples older than this (before a fix) mean there is no odometry right now.
 WHEELS_GONE_NS = 1_000_000_000
+# A gyro silent for this long (ten samples at the Jackal's 50 Hz) is gone: the wheels turn.
+GYRO_GONE_NS = 200_000_000
 
 
 @dataclass
@@ -84,6 +88,8 @@ class Localizer:
         self._filter: PoseFilter | None = None
         self._odom = np.zeros(3)  # dead-reckoned x, y, yaw in `odom`
         self._last_wheels: WheelSample | None = None
+        self._gyro_t: int | None = None
+        self._gyro_turn = 0.0  # integrated since the last wheel sample, rad
         self._motion = _Motion()
         self._rejected_in_a_row = 0
         self._headings_rejected_in_a_row = 0
@@ -99,6 +105,7 @@ class Localizer:
     def add_wheels(self, sample: WheelSample) -> None:
         self.stats.wheel_samples += 1
         previous, self._last_wheels = self._last_wheels, sample
+        gyro_turn = self._take_gyro_turn(sample.t_host)
         if previous is None:
             self._record(sample.t_host)
             return
@@ -110,6 +117,8 @@ class Localizer:
             return
         distance = (left + right) / 2
         turn = (right - left) / self.wheels.track
+        if gyro_turn is not None:
+            turn = gyro_turn  # a skid steer's wheels scrub in a turn; the gyro does not
         self._motion = _Motion(speed=distance / dt, yaw_rate=turn / dt)
 
         yaw = self._odom[2] + turn / 2
@@ -123,12 +132,33 @@ class Localizer:
         if self._filter is not None:
             c = self.config
             sigma_distance = c.odom_sigma_per_sqrt_m * math.sqrt(abs(distance))
-            sigma_turn = math.sqrt(
-                c.odom_yaw_sigma_per_sqrt_rad**2 * abs(turn)
-                + c.odom_yaw_sigma_per_sqrt_m**2 * abs(distance)
-            )
+            if gyro_turn is None:
+                sigma_turn = math.sqrt(
+                    c.odom_yaw_sigma_per_sqrt_rad**2 * abs(turn)
+                    + c.odom_yaw_sigma_per_sqrt_m**2 * abs(distance)
+                )
+            else:
+                sigma_turn = math.hypot(
+                    c.gyro_yaw_sigma_per_sqrt_s * math.sqrt(dt), c.gyro_bias_sigma_rad_s * dt
+                )
             self._filter.predict(distance, turn, sigma_distance, sigma_turn)
         self._record(sample.t_host)
+
+    def add_yaw_rate(self, t: int, rate: float) -> None:
+        """The gyro's bias-corrected turn rate about the vertical (rad/s) at `t`: from then
+        on the heading between wheel samples follows the gyro, not the wheels' difference."""
+        if self._gyro_t is not None and 0 < t - self._gyro_t <= GYRO_GONE_NS:
+            self._gyro_turn += rate * (t - self._gyro_t) / 1e9
+        self._gyro_t = t if self._gyro_t is None else max(self._gyro_t, t)
+        self.stats.gyro_samples += 1
+
+    def _take_gyro_turn(self, t: int) -> float | None:
+        """The gyro's turn since the last wheel sample (and start afresh), or None when the
+        gyro is silent (no IMU, or a link that dropped it)."""
+        turn, self._gyro_turn = self._gyro_turn, 0.0
+        if self._gyro_t is None or t - self._gyro_t > GYRO_GONE_NS:
+            return None
+        return turn
 
     def add_fix(self, fix: Fix) -> FixVerdict:
         self.stats.fixes += 1
@@ -142,6 +172,12 @@ class Localizer:
         convergence = self.grid.convergence_rad(fix.lat, fix.lon)
         covariance = np.diag([sigma[0] ** 2, sigma[1] ** 2])
         heading = self._heading_measurement(fix, convergence)
+        # The epoch describes the robot at its own time, not when its sentences arrived:
+        # carry it forward by the motion the wheels measured since.
+        shift, turn = self._motion_since(self.epoch_time(fix))
+        easting, northing = easting + shift[0], northing + shift[1]
+        if heading is not None:
+            heading = (wrap_angle(heading[0] + turn), *heading[1:])
 
         if self._filter is None:
             verdict = self._start(fix, easting, northing, covariance, heading)
@@ -247,6 +283,41 @@ class Localizer:
         ):
             return true_heading_to_grid_yaw(fix.course_deg, convergence), sigma, "course"
         return None
+
+    def epoch_time(self, fix: Fix) -> int:
+        """When, on the host clock, the robot was where the fix says (ns). With the host
+        clock on UTC (NTP or PPS: the fix arrived within `gnss_clock_tolerance_s` of its
+        UTC) that is the epoch's UTC itself, and the arrival delay is the receiver's
+        latency, measured (`stats.latency_ms`); else the arrival less the configured
+        `gnss_latency_s`."""
+        c = self.config
+        if fix.utc_ns is not None:
+            delay = fix.t_host - fix.utc_ns
+            if 0 <= delay <= c.gnss_clock_tolerance_s * 1e9:
+                self.stats.latency_ms = delay / 1e6
+                return fix.utc_ns
+        return fix.t_host - int(c.gnss_latency_s * 1e9)
+
+    def _motion_since(self, t: int) -> tuple[np.ndarray, float]:
+        """How far the antenna moved (grid east, north) and the robot turned from `t` to
+        now, by the wheels: odometry is exact over the fraction of a second of a
+        receiver's latency, and unlike the filter's history it holds no fix's correction.
+        Zero when `t` is not behind the newest input or no longer in the history."""
+        if self._filter is None and self._last_wheels is None:
+            return np.zeros(2), 0.0
+        then, now = self.pose_at(t, "odom"), self.pose_at(self._t, "odom")
+        if then is None or now is None or t >= self._t:
+            return np.zeros(2), 0.0
+        lever = self._lever_arm
+        moved = (
+            np.array([now.x - then.x, now.y - then.y])
+            + rotate_xy(lever, now.yaw)
+            - rotate_xy(lever, then.yaw)
+        )
+        # From odom into the grid: by the filter's heading against odometry's, now.
+        if self._filter is not None:
+            moved = rotate_xy(moved, float(self._filter.state[2]) - now.yaw)
+        return moved, wrap_angle(now.yaw - then.yaw)
 
     @property
     def speed(self) -> float:

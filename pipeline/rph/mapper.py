@@ -97,6 +97,14 @@ class RphMapper:
         self.counts = dict.fromkeys(COUNTERS, 0)  # totals over every scan processed
         self._tracks: list[_Track] = []
 
+    def reanchor(self, new_from_old: np.ndarray, frame: str) -> None:
+        """Move every tree into another world frame (as `TreeMapper.reanchor`)."""
+        rotation, translation = new_from_old[:3, :3], new_from_old[:3, 3]
+        for track in self._tracks:
+            # The sum of n transformed positions: R sum + n t.
+            track.position_sum = rotation @ track.position_sum + track.observations * translation
+        self.frame = frame
+
     def process(
         self,
         scan: Scan,

@@ -94,6 +94,12 @@ def _fix(fix: dict | None) -> str:
     )
 
 
+def _latency(latency_ms: float | None) -> str:
+    if latency_ms is None:
+        return "- (no receive times on UTC: a log file, or a host clock off UTC)"
+    return f"{latency_ms:g} ms, the median from an epoch's UTC to its arrival"
+
+
 def format_facts(facts: dict) -> str:
     """The human summary of `nmea info`."""
     duration = "-" if facts["duration_s"] is None else f"{facts['duration_s']:g} s"
@@ -111,6 +117,7 @@ def format_facts(facts: dict) -> str:
         "with a value",
         f"  epochs         {facts['epochs']} ({facts['fixes']} with a fix)",
         f"  time           {facts['first_utc'] or '-'} .. {facts['last_utc'] or '-'} ({duration})",
+        f"  latency        {_latency(facts['latency_ms'])}",
         f"  first fix      {_fix(facts['first_fix'])}",
         f"  last fix       {_fix(facts['last_fix'])}",
     ]

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
 from tqdm import tqdm
 
+from treetraits.errors import ConfigError
 from treetraits.pipeline.config import TRAIT_METHODS
 from treetraits.service.config import METHODS, load_config, with_method
 from treetraits.service.replay import ReplayOptions, format_table, run_replay
@@ -35,7 +37,20 @@ def register(commands: argparse._SubParsersAction) -> None:
     replay.add_argument(
         "--calibration", type=Path, help="calibration v1 JSON (default: the recording's)"
     )
-    replay.add_argument("--nmea", type=Path, help="an NMEA log to go with a LiDAR capture")
+    replay.add_argument(
+        "--nmea",
+        type=Path,
+        help="an NMEA log to go with a LiDAR capture: its sentences are placed on the "
+        "capture's clock by their UTC (received localization.gnss_latency_s later)",
+    )
+    replay.add_argument(
+        "--nmea-offset",
+        default="0",
+        metavar="SECONDS|start",
+        help="seconds to add to the NMEA log's times when the logger's clock was off the "
+        "capture's, or 'start' to put the log's first epoch at the capture's first packet "
+        "(default 0: both clocks on UTC)",
+    )
     replay.add_argument(
         "--config",
         type=Path,
@@ -60,6 +75,18 @@ def register(commands: argparse._SubParsersAction) -> None:
     replay.set_defaults(run=run)
 
 
+def _nmea_offset(text: str) -> float | str:
+    if text == "start":
+        return text
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not math.isfinite(seconds):
+        raise ConfigError(f"--nmea-offset is a number of seconds or 'start', got {text!r}")
+    return seconds
+
+
 def run(args: argparse.Namespace) -> int:
     config = with_method(load_config(args.config), args.method, args.traits)
     options = ReplayOptions(
@@ -67,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
         field_map=args.field_map,
         calibration=args.calibration,
         nmea=args.nmea,
+        nmea_offset=_nmea_offset(args.nmea_offset),
     )
     start = time.perf_counter()
     # Progress in bytes of sensor data (a recording is compressed: no total to show).
