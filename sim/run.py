@@ -72,6 +72,10 @@ class SurveySettings:
     # blocks are planted at any bearing, and a heading or anchoring error that a field
     # aligned with the grid hides (east-west errors all along x) shows once it is turned.
     field_heading_deg: float = 0.0
+    # The GNSS antenna's position on the robot (x forward, y left, z up; metres from
+    # base_link), replacing the calibration's: written into the recording's calibration,
+    # so replay removes the lever arm the receiver saw. None: the calibration's.
+    antenna: tuple[float, float, float] | None = None
     camera_rate_hz: float = 10.0
     camera: CameraSettings = field(default_factory=lambda: CameraSettings(render_scale=0.25))
     lidar: LidarSettings = field(default_factory=LidarSettings)
@@ -264,6 +268,8 @@ def simulate_survey(
     `<stem>.field_map.geojson` beside it."""
     s = settings or SurveySettings()
     calibration = calibration or load_calibration(DEFAULT_CALIBRATION)
+    if s.antenna is not None:
+        calibration = with_antenna(calibration, s.antenna)
     rng = np.random.default_rng(s.seed)
     poses = drive(waypoints(s.path, s.width, s.length, s.goal), s.drive)
     t0_ns = int(START_UTC.timestamp() * 1e9)

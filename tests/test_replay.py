@@ -12,12 +12,11 @@ import pytest
 
 from tests.conftest import CONTRACT_CSV_COLUMNS, FIXTURES
 from treetraits.cli import main
-from treetraits.drivers.calibration import load_calibration
 from treetraits.service.config import ServiceConfig, with_method
 from treetraits.service.replay import ReplayOptions, run_replay
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.orchard import TreeSettings
-from treetraits.sim.run import DEFAULT_CALIBRATION, SurveySettings, simulate_survey, with_antenna
+from treetraits.sim.run import SurveySettings, simulate_survey
 
 
 @pytest.fixture(scope="module")
@@ -184,9 +183,9 @@ def test_a_turned_block_with_the_antenna_off_centre_maps_in_place(tmp_path):
         goal=10.0,
         seed=2,
         field_heading_deg=112.0,
+        antenna=(-1.0, -0.6, 0.5),
     )
-    calibration = with_antenna(load_calibration(DEFAULT_CALIBRATION), (-1.0, -0.6, 0.5))
-    survey = simulate_survey(tmp_path / "turned.mcap", settings, calibration)
+    survey = simulate_survey(tmp_path / "turned.mcap", settings)
     report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
     truth = truth_rows(survey)
     assert sorted(t.field_id for t in report.trees) == sorted(truth)

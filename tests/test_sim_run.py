@@ -13,7 +13,6 @@ import pytest
 
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
-from treetraits.drivers.calibration import load_calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.sources import open_gnss_source
@@ -25,11 +24,9 @@ from treetraits.pipeline.localization import LocalizationConfig, Localizer
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.paths import drive, waypoints
 from treetraits.sim.run import (
-    DEFAULT_CALIBRATION,
     SurveySettings,
     placement,
     simulate_survey,
-    with_antenna,
 )
 
 SETTINGS = SurveySettings(
@@ -141,10 +138,10 @@ def test_a_turned_field_and_any_lever_arm_leave_no_offset(
         goal=7.0,
         seed=7,
         field_heading_deg=field_heading_deg,
+        antenna=antenna,
         gnss=dataclasses.replace(GnssSettings(), dual_antenna=dual_antenna),
     )
-    calibration = with_antenna(load_calibration(DEFAULT_CALIBRATION), antenna)
-    survey = simulate_survey(tmp_path / "turned.mcap", settings, calibration)
+    survey = simulate_survey(tmp_path / "turned.mcap", settings)
     errors = fused_pose_errors(survey, settings)
     assert len(errors) >= 20
     # Measured: medians 2-3 cm, at most 5 cm, with and without a true heading (without

@@ -15,7 +15,7 @@ from treetraits.sim.clutter import ClutterSettings
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.orchard import TerrainSettings, TreeSettings, WindSettings
 from treetraits.sim.paths import PATHS
-from treetraits.sim.run import DEFAULT_CALIBRATION, SurveySettings, simulate_survey, with_antenna
+from treetraits.sim.run import SurveySettings, simulate_survey
 from treetraits.sim.wheels import WheelSettings
 
 QUALITIES = {"rtk": 4, "float": 5, "dgps": 2, "autonomous": 1}
@@ -273,6 +273,7 @@ def run_sim(args: argparse.Namespace) -> int:
         slope=args.slope,
         goal=args.goal,
         field_heading_deg=args.field_heading,
+        antenna=_antenna(args.antenna) if args.antenna else None,
         gnss=dataclasses.replace(
             GnssSettings(),
             quality=QUALITIES[args.gnss],
@@ -305,9 +306,7 @@ def run_sim(args: argparse.Namespace) -> int:
         ),
         wheels=dataclasses.replace(WheelSettings(), imu=not args.no_imu),
     )
-    calibration = load_calibration(args.calibration or DEFAULT_CALIBRATION)
-    if args.antenna:
-        calibration = with_antenna(calibration, _antenna(args.antenna))
+    calibration = load_calibration(args.calibration) if args.calibration else None
     with tqdm(total=100, desc="sim", unit="%", leave=False, disable=None) as bar:
 
         def progress(fraction: float) -> None:
