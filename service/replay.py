@@ -82,24 +82,34 @@ def open_input(
     if nmea is not None and not Path(nmea).is_file():
         raise SourceError(f"--nmea {nmea}: no such file")
 
-    def capture_messages():
-        source = open_source(path)
-        packets = iter(source)
-        first = next(packets, None)
-        if first is None:
-            source.close()
-            return
-        lidar = (
-            (rec.LIDAR_PACKETS if p.is_data else rec.LIDAR_TELEMETRY, p.payload, p.t_host, p.t_host)
-            for p in itertools.chain([first], packets)
-        )
-        gnss = iter(())
-        if nmea is not None:
+    # Opened here, not when the messages are first read: a capture or a log that cannot
+    # be used stops the replay before anything of an earlier run is touched.
+    source = open_source(path)
+    packets = iter(source)
+    first = next(packets, None)
+    gnss = iter(())
+    if nmea is not None and first is not None:
+        try:
             gnss = nmea_log_messages(nmea, first.t_host, nmea_offset, gnss_latency_s)
-        yield from heapq.merge(lidar, gnss, key=lambda m: m[2])
-        source.close()
+        except BaseException:
+            source.close()
+            raise
+
+    def capture_messages():
+        try:
+            if first is None:
+                return
+            lidar = (_packet_message(p) for p in itertools.chain([first], packets))
+            yield from heapq.merge(lidar, gnss, key=lambda m: m[2])
+        finally:
+            source.close()
 
     return Input(capture_messages(), None, None, path.stat().st_size)
+
+
+def _packet_message(packet) -> tuple[str, bytes, int, int]:
+    topic = rec.LIDAR_PACKETS if packet.is_data else rec.LIDAR_TELEMETRY
+    return topic, packet.payload, packet.t_host, packet.t_host
 
 
 def nmea_log_messages(
@@ -109,8 +119,9 @@ def nmea_log_messages(
     receive times, but its sentences carry their UTC: each is stamped with its epoch's UTC
     (`publish_time`; a log without dates takes the capture's) and received `latency_s`
     later (`log_time`), after `offset` seconds are added ("start": the log's first epoch
-    at `capture_start_ns`). A log that ends before the capture starts is refused: its
-    fixes would all come before the first scan and place none of them."""
+    at `capture_start_ns`). A log that ends before the capture starts is refused (here,
+    not when the messages are read): its fixes would all come before the first scan and
+    place none of them."""
     from treetraits.drivers.gnss.sources import open_gnss_source
     from treetraits.drivers.gnss.times import NmeaClock, sentence_time
 
@@ -144,10 +155,14 @@ def nmea_log_messages(
             "--nmea-offset SECONDS, or --nmea-offset start to begin both together"
         )
     latency = int(latency_s * 1e9)
-    for raw, utc in stamped():
-        # Sentences before the log's first time go with its first epoch.
-        placed = (first if utc is None else utc) + shift
-        yield rec.GNSS_NMEA, raw, placed + latency, placed
+
+    def messages():
+        for raw, utc in stamped():
+            # Sentences before the log's first time go with its first epoch.
+            placed = (first if utc is None else utc) + shift
+            yield rec.GNSS_NMEA, raw, placed + latency, placed
+
+    return messages()
 
 
 def _utc_text(t_ns: int) -> str:

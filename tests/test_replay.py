@@ -205,7 +205,8 @@ def test_a_turned_block_with_the_antenna_off_centre_maps_in_place(tmp_path):
 def test_a_real_capture_with_a_real_nmea_log_is_placed_by_the_logs_utc(tmp_path, capsys):
     """The VeloView VLP-16 capture (2014-11-04, an indoor scene) with the OxTS receiver's
     log (2014-02-19, 10 Hz GGA, HDT): by their UTC they do not meet, which replay says
-    rather than mapping nothing; with the log's first epoch at the capture's first packet
+    rather than mapping nothing (and before touching an earlier run's outputs); with the
+    log's first epoch at the capture's first packet
     the scans are placed in UTM where the receiver was (what is seen there is rejected,
     not a tree, and listed with its position)."""
     capture = FIXTURES / "vlp16" / "veloview_vlp16_20hz_strongest.pcap"
@@ -213,10 +214,12 @@ def test_a_real_capture_with_a_real_nmea_log_is_placed_by_the_logs_utc(tmp_path,
     facts = json.loads((FIXTURES / "nmea" / "expected_counts.json").read_text())
     first_fix = facts["files"]["rst39.nmea"]["first_fix"]
     out = tmp_path / "out"
+    report = run_replay(capture, out, ReplayOptions(nmea=log, nmea_offset="start"))
+    stored = (out / "traits.sqlite").read_bytes()
     assert main(["replay", str(capture), "--nmea", str(log), "--out", str(out)]) == 2
     assert "before the capture starts" in capsys.readouterr().err
+    assert (out / "traits.sqlite").read_bytes() == stored  # refused before touching it
 
-    report = run_replay(capture, out, ReplayOptions(nmea=log, nmea_offset="start"))
     summary = report.summary
     assert summary["world_frame"] == "utm" and summary["utm_zone"] == "16N"
     assert summary["fixes"] >= facts["files"]["rst39.nmea"]["valid_by_type"]["GGA"]
