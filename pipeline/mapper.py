@@ -172,6 +172,12 @@ class TreeMapper:
             self._observe(tree, cluster, traits_from_base, decision.tree_id, centres, outline)
         for kept, absorbed in step.merged:
             self._absorb(kept, absorbed)
+        merged = step.merged + self._merge_outlines(step.decisions)
+        alias = dict((absorbed, kept) for kept, absorbed in merged)
+        decisions = [
+            replace(d, tree_id=_resolve(alias, d.tree_id)) if d.tree_id in alias else d
+            for d in step.decisions
+        ]
         clock.lap("traits")
 
         results = [
@@ -185,17 +191,17 @@ class TreeMapper:
                 float(d.entropy),
                 c,
             )
-            for c, m, d in zip(detection.clusters, measurements, step.decisions, strict=True)
+            for c, m, d in zip(detection.clusters, measurements, decisions, strict=True)
         ]
-        created = [d.tree_id for d in step.decisions if d.outcome == "created"]
-        updated = [d.tree_id for d in step.decisions if d.outcome in ("updated", "merged")]
+        created = [d.tree_id for d in decisions if d.outcome == "created"]
+        updated = [d.tree_id for d in decisions if d.outcome in ("updated", "merged")]
         return ScanResult(
             t=t,
             frame=self.frame,
             clusters=results,
             created=created,
-            updated=list(dict.fromkeys(updated + [kept for kept, _ in step.merged])),
-            merged=step.merged,
+            updated=list(dict.fromkeys(updated + [kept for kept, _ in merged])),
+            merged=merged,
             ndvi=ndvi_reason,
             ground=detection.ground,
             counts={**detection.counts, "candidates": step.candidates},
@@ -314,6 +320,42 @@ class TreeMapper:
             tree.ndvi_sum += cluster.ndvi * len(cluster.points)
             tree.ndvi_count += len(cluster.points)
 
+    def _merge_outlines(self, decisions) -> list[tuple[int, int]]:
+        """Trees whose accumulated outlines share a centre (closer than the tracker's
+        merge_distance_m) are one tree seen as two: a crown wider than the association
+        gate, seen from both lanes, has its returns' centroids (the Kalman states) a crown
+        apart on either side, while each side's outline is centred on the trunk. The older
+        tree keeps its id, as in the tracker's merge."""
+        limit = self.config.tracking.merge_distance_m
+        touched = {d.tree_id for d in decisions if d.outcome != "duplicate"}
+        if limit <= 0 or not touched:
+            return []
+        centres = {
+            tree_id: centre
+            for tree_id, tree in self._trees.items()
+            if (centre := tree.traits.centre()) is not None
+        }
+        merged = []
+        for tree_id in sorted(touched):
+            own = centres.get(tree_id)
+            if own is None:
+                continue
+            near = [
+                other
+                for other, centre in centres.items()
+                if other != tree_id and float(np.hypot(*(centre - own))) < limit
+            ]
+            if not near:
+                continue
+            keep, drop = min(tree_id, near[0]), max(tree_id, near[0])
+            self.tracker.fold(keep, drop)
+            self._absorb(keep, drop)
+            centres.pop(drop)
+            if (centre := self._trees[keep].traits.centre()) is not None:
+                centres[keep] = centre
+            merged.append((keep, drop))
+        return merged
+
     def _absorb(self, kept: int, absorbed: int) -> None:
         gone = self._trees.pop(absorbed, None)
         if gone is None:
@@ -323,6 +365,12 @@ class TreeMapper:
         tree.votes.absorb(gone.votes)
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
+
+
+def _resolve(alias: dict[int, int], tree_id: int) -> int:
+    while tree_id in alias:
+        tree_id = alias[tree_id]
+    return tree_id
 
 
 def _nearest_is(xy: np.ndarray, tree_id: int, centres: dict[int, np.ndarray]) -> np.ndarray:

@@ -301,6 +301,14 @@ class Tracker:
         track.scans.add(self._scan)
         track.last_seen = t
 
+    def fold(self, keep_id: int, drop_id: int) -> None:
+        """Tree `drop_id` is tree `keep_id` seen apart (the mapper's outlines say so): one
+        tree, as the merge makes it."""
+        keep = next(tr for tr in self.tracks if tr.tree_id == keep_id)
+        drop = next(tr for tr in self.tracks if tr.tree_id == drop_id)
+        _fold(keep, drop)
+        self.tracks.remove(drop)
+
     def _merge(self, in_view: np.ndarray) -> list[tuple[int, int]]:
         """Trees in view closer than merge_distance_m (x-y) are one: the older (lower id)
         keeps its id; the two estimates are fused by their covariances and the tree keeps
@@ -323,10 +331,7 @@ class Tracker:
             keep, drop = self.tracks[index[a]], self.tracks[index[b]]
             if float(np.hypot(*(keep.state[:2] - drop.state[:2]))) >= limit:
                 continue  # `keep` took another tree's state above and moved away
-            fuse_estimates(keep, drop)
-            keep.scans.union(drop.scans)
-            keep.first_seen = min(keep.first_seen, drop.first_seen)
-            keep.last_seen = max(keep.last_seen, drop.last_seen)
+            _fold(keep, drop)
             merged.append((keep.tree_id, drop.tree_id))
             gone.add(b)
         dropped = {int(index[b]) for b in gone}
@@ -352,6 +357,13 @@ def _assign(gated: np.ndarray, cost: np.ndarray) -> list[tuple[int, int]]:
     return sorted(
         (int(rows[i]), int(cols[j])) for i, j in zip(r, c, strict=True) if sub_gated[i, j]
     )
+
+
+def _fold(keep: Track, drop: Track) -> None:
+    fuse_estimates(keep, drop)
+    keep.scans.union(drop.scans)
+    keep.first_seen = min(keep.first_seen, drop.first_seen)
+    keep.last_seen = max(keep.last_seen, drop.last_seen)
 
 
 def fuse_estimates(keep: Track, drop: Track) -> None:
