@@ -11,11 +11,13 @@ import math
 import numpy as np
 import pytest
 
+from tests.conftest import FIXTURES
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.sources import open_gnss_source
+from treetraits.drivers.gnss.summary import summarise
 from treetraits.drivers.records import Scan, WheelSample
 from treetraits.drivers.velodyne.reader import LidarReader
 from treetraits.drivers.velodyne.sources import open_source
@@ -24,6 +26,7 @@ from treetraits.pipeline.localization import LocalizationConfig, Localizer
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.paths import drive, waypoints
 from treetraits.sim.run import (
+    LATENCY_NS,
     SurveySettings,
     placement,
     simulate_survey,
@@ -173,3 +176,12 @@ def test_the_command_line_writes_a_survey(tmp_path, capsys):
     assert out.exists() and out.with_suffix(".truth.csv").exists()
     assert "wrote" in capsys.readouterr().out
     assert main(["sim", "--grid", "4", "--out", str(out)]) == 2
+
+
+def test_nmea_info_measures_the_receivers_latency_in_a_recording(survey):
+    """The twin's receiver sends each epoch 60 ms after its UTC (LATENCY_NS); a recording
+    keeps the receive times, so `nmea info` measures it. A log file read now has none."""
+    facts = summarise(open_gnss_source(survey.recording))
+    assert facts["latency_ms"] == pytest.approx(LATENCY_NS["gnss"] / 1e6, abs=1.0)
+    log = FIXTURES / "nmea" / "ublox-zed-f9p-nmea.nmea"
+    assert summarise(open_gnss_source(log))["latency_ms"] is None
