@@ -148,6 +148,9 @@ class TreeMapper:
         measurements = self._measurements(detection.clusters, map_from_base)
         base_from_map = np.linalg.inv(map_from_base)
         in_view = self._in_view(base_from_map)
+        view_ids = {
+            tr.tree_id for tr, seen in zip(self.tracker.tracks, in_view, strict=True) if seen
+        }
         step = self.tracker.step(measurements, self.T_lidar_base @ base_from_map, in_view, t)
         clock.lap("tracking")
 
@@ -172,7 +175,7 @@ class TreeMapper:
             self._observe(tree, cluster, traits_from_base, decision.tree_id, centres, outline)
         for kept, absorbed in step.merged:
             self._absorb(kept, absorbed)
-        merged = step.merged + self._merge_outlines(step.decisions)
+        merged = step.merged + self._merge_outlines(step.decisions, view_ids)
         alias = dict((absorbed, kept) for kept, absorbed in merged)
         decisions = [
             replace(d, tree_id=_resolve(alias, d.tree_id)) if d.tree_id in alias else d
@@ -320,7 +323,7 @@ class TreeMapper:
             tree.ndvi_sum += cluster.ndvi * len(cluster.points)
             tree.ndvi_count += len(cluster.points)
 
-    def _merge_outlines(self, decisions) -> list[tuple[int, int]]:
+    def _merge_outlines(self, decisions, view_ids: set[int]) -> list[tuple[int, int]]:
         """Trees whose accumulated outlines share a centre (closer than the tracker's
         merge_distance_m) are one tree seen as two: a crown wider than the association
         gate, seen from both lanes, has its returns' centroids (the Kalman states) a crown
@@ -330,10 +333,13 @@ class TreeMapper:
         touched = {d.tree_id for d in decisions if d.outcome != "duplicate"}
         if limit <= 0 or not touched:
             return []
+        # Candidates: the trees this scan touched and those in view before it (a tree out
+        # of view is not beside a touched one): the cost stays with the trees around.
         centres = {
             tree_id: centre
             for tree_id, tree in self._trees.items()
-            if (centre := tree.traits.centre()) is not None
+            if (tree_id in view_ids or tree_id in touched)
+            and (centre := tree.traits.centre()) is not None
         }
         merged = []
         for tree_id in sorted(touched):

@@ -23,6 +23,7 @@ from treetraits.drivers.records import Tree
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
 from treetraits.pipeline.fieldmap import load_field_map, parse_geojson
+from treetraits.pipeline.georef import iso_utc
 from treetraits.service.config import ServiceConfig
 from treetraits.service.outputs import STORE_NAME, RunWriter
 from treetraits.service.survey import SurveyProcessor
@@ -150,8 +151,8 @@ def nmea_log_messages(
     shift = capture_start_ns - first if offset == "start" else int(float(offset) * 1e9)
     if last + shift < capture_start_ns:
         raise SourceError(
-            f"--nmea {path}: the log ends ({_utc_text(last + shift)}) before the capture "
-            f"starts ({_utc_text(capture_start_ns)}); if the logger's clock was off, give "
+            f"--nmea {path}: the log ends ({iso_utc(last + shift)}) before the capture "
+            f"starts ({iso_utc(capture_start_ns)}); if the logger's clock was off, give "
             "--nmea-offset SECONDS, or --nmea-offset start to begin both together"
         )
     latency = int(latency_s * 1e9)
@@ -163,12 +164,6 @@ def nmea_log_messages(
             yield rec.GNSS_NMEA, raw, placed + latency, placed
 
     return messages()
-
-
-def _utc_text(t_ns: int) -> str:
-    import datetime as dt
-
-    return dt.datetime.fromtimestamp(t_ns / 1e9, dt.UTC).isoformat(timespec="seconds")
 
 
 def make_mapper(config: ServiceConfig, calibration: Calibration):
