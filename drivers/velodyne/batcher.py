@@ -234,6 +234,11 @@ class ScanBatcher:
         optics = self._optics(scan.product)
         points = decode_packets(packets, t_packet, optics)
         mode_name = m.RETURN_MODE_NAMES[scan.return_mode]
+        if mode_name != "dual" and len(points):
+            # A packet stamped less than a packet period after the one before (a corrupt
+            # timestamp: a VLP-16 sends one every 1.33 ms) would start its firings before
+            # the last ones ended; the scan's times are held from running back.
+            np.maximum.accumulate(points["t"], out=points["t"])
         duplicates = int(points["duplicate"].sum())
         self.stats.scans += 1
         self.stats.complete_scans += int(complete)
