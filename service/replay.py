@@ -258,6 +258,11 @@ def run_replay(
             scans_without_pose=processor.stats.scans_without_pose,
             scans_without_heading=processor.stats.scans_without_heading,
             fixes=processor.stats.fixes,
+            gnss_latency_ms=processor.localizer.stats.latency_ms,
+            lidar_clock={
+                "scans_on_utc": processor.lidar_clock.stats.scans_on_utc,
+                "host_minus_utc_ms": processor.lidar_clock.stats.host_minus_utc_ms,
+            },
             frames=processor.stats.frames,
         )
         writer.set_facts(summary)

@@ -4,7 +4,9 @@ the onboard service.
 Messages arrive as they were received (and as a recording stores them): a topic of the
 recording format, the bytes, `log_time` (host receive time) and `publish_time`. LiDAR
 packets become scans, NMEA becomes fixes, Jackal MCU and retrofit encoder board bytes
-become wheel samples, JPEGs wait in a short buffer. A scan is processed, with the
+become wheel samples, JPEGs wait in a short buffer; the VLP-16's position packets, when
+its GPS input is locked, put scans and GNSS epochs on the host clock by their UTC
+(`lidar_clock`). A scan is processed, with the
 camera frame nearest its middle, as soon as what it gets can no longer change:
 
 - its pose: the localizer is causal (an input moves the poses from its arrival on, never
@@ -36,12 +38,15 @@ from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.drivers.records import Fix, Frame, Pose, Scan, WheelSample
 from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.drivers.velodyne.telemetry import decode_telemetry
+from treetraits.errors import ParseError
 from treetraits.firmware_bridge.jackal.records import JackalImu
 from treetraits.firmware_bridge.jackal.session import JackalProtocol
 from treetraits.firmware_bridge.retrofit.reader import BridgeDecoder
 from treetraits.pipeline.deskew import deskew_scan
 from treetraits.pipeline.localization import LocalizationConfig, Localizer
 from treetraits.pipeline.localization.attitude import AttitudeFilter, rotation_zyx
+from treetraits.pipeline.localization.lidar_clock import LidarUtcClock
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
 
@@ -80,6 +85,7 @@ class SurveyStats:
     imu_samples: int = 0
     scans_deskewed: int = 0
     unknown_topics: int = 0
+    telemetry_malformed: int = 0
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -99,6 +105,8 @@ class SurveyProcessor:
         self._imu_seen: int | None = None  # log_time of the newest IMU sample
         self.stats = SurveyStats()
         self._batcher = ScanBatcher(model=lidar_model)
+        # A PPS-locked VLP-16 puts its scans and the GNSS epochs on the host clock by UTC.
+        self.lidar_clock = LidarUtcClock()
         self._splitter = SentenceSplitter()
         self._epochs = EpochAssembler()
         self._mcu = JackalProtocol()
@@ -119,7 +127,7 @@ class SurveyProcessor:
         if topic == rec.LIDAR_PACKETS:
             scan = self._batcher.push(data, log_time)
             if scan is not None:
-                self._pending.append(scan)
+                self._add_scan(scan)
         elif topic == rec.CAMERA_JPEG:
             self._frames.append(Frame(bytes(data), log_time, publish_time, self.stats.frames))
             self._frame_seen = log_time
@@ -148,7 +156,11 @@ class SurveyProcessor:
                 if isinstance(record, WheelSample):  # ticks: the localizer converts them
                     self._add_wheels(record)
         elif topic == rec.LIDAR_TELEMETRY:
-            pass  # the VLP-16's own GPS input: not used for the pose
+            try:
+                self.lidar_clock.add_telemetry(decode_telemetry(data, log_time))
+            except ParseError:
+                self.stats.telemetry_malformed += 1
+            self.localizer.host_minus_utc = self.lidar_clock.host_minus_utc(log_time)
         else:
             self.stats.unknown_topics += 1
         return self._ready(end_of_input=False)
@@ -158,8 +170,13 @@ class SurveyProcessor:
         if (fix := self._epochs.flush()) is not None:
             self._add_fix(fix)
         if (scan := self._batcher.flush()) is not None:
-            self._pending.append(scan)
+            self._add_scan(scan)
         return self._ready(end_of_input=True)
+
+    def _add_scan(self, scan: Scan) -> None:
+        scan = self.lidar_clock.place(scan)
+        self.localizer.host_minus_utc = self.lidar_clock.host_minus_utc(scan.t_host)
+        self._pending.append(scan)
 
     def _add_wheels(self, sample: WheelSample) -> None:
         self.stats.wheel_samples += 1

@@ -34,14 +34,14 @@ def sentence(body: str) -> bytes:
     return f"${body}*{checksum(body.encode('ascii')):02X}\r\n".encode("ascii")
 
 
-def _lat_text(lat: float) -> tuple[str, str]:
+def lat_field(lat: float) -> tuple[str, str]:
     hemisphere = "N" if lat >= 0 else "S"
     lat = abs(lat)
     degrees = int(lat)
     return f"{degrees:02d}{(lat - degrees) * 60:011.8f}", hemisphere
 
 
-def _lon_text(lon: float) -> tuple[str, str]:
+def lon_field(lon: float) -> tuple[str, str]:
     hemisphere = "E" if lon >= 0 else "W"
     lon = abs(lon)
     degrees = int(lon)
@@ -62,8 +62,8 @@ def epoch_sentences(
 ) -> list[bytes]:
     """One epoch's sentences, in the order a receiver sends them."""
     hhmmss = utc.strftime("%H%M%S.") + f"{utc.microsecond // 10000:02d}"
-    lat_text, ns = _lat_text(lat)
-    lon_text, ew = _lon_text(lon)
+    lat_text, ns = lat_field(lat)
+    lon_text, ew = lon_field(lon)
     out = [
         sentence(
             f"GNGGA,{hhmmss},{lat_text},{ns},{lon_text},{ew},{quality},"

@@ -35,6 +35,11 @@ class LidarSettings:
     min_range_m: float = 0.4
     reflectivity_by_label: tuple[int, int] = (8, 45)  # ground, trees
     optics: m.LaserModel = m.VLP16
+    # The sensor's GPS input (PPS and $GPRMC from the GNSS receiver): its ToH counts on UTC
+    # and its position packets say PPS "locked" with the RMC. Without it (the default, as
+    # on a stock Jackal) the ToH counts from power-on and position packets are not sent.
+    gps_sync: bool = False
+    power_on_s: float = 1234.567  # how long a sensor without GPS input has been running
 
 
 @dataclass(frozen=True)
@@ -197,26 +202,34 @@ class Vlp16Emulator:
     def packets(
         self, trajectory: Trajectory, t_start: int, t_end: int, packets_per_batch: int = 76
     ) -> Iterator[tuple[int, bytes]]:
-        """(device time of the packet's first firing, payload) from t_start to t_end (ns).
-        The caller stamps host receive times (e.g. + a small latency)."""
+        """(UTC of the packet's first firing, payload) from t_start to t_end (ns). The
+        payload's ToH is on the sensor's own clock (`device_time`). The caller stamps host
+        receive times (e.g. + a small latency)."""
         period = m.PACKET_NS_SINGLE
         count = int((t_end - t_start) // period)
         for first in range(0, count, packets_per_batch):
             n = min(packets_per_batch, count - first)
             t_packet = t_start + (first + np.arange(n, dtype=np.int64)) * period
-            payload = self._batch(trajectory, t_packet)
+            payload = self._batch(trajectory, t_packet, self.device_time(t_packet, t_start))
             for i in range(n):
                 yield (
                     int(t_packet[i]),
                     payload[i * m.DATA_PACKET_SIZE : (i + 1) * m.DATA_PACKET_SIZE],
                 )
 
+    def device_time(self, t: np.ndarray, t_start: int) -> np.ndarray:
+        """The sensor's own clock (ns; its ToH is this past the hour) at UTC `t`: UTC when
+        its GPS input is locked, else the time since power-on."""
+        if self.settings.gps_sync:
+            return t
+        return t - t_start + round(self.settings.power_on_s * 1e9)
+
     def _rotor_angle(self, t: np.ndarray) -> np.ndarray:
         """Rotor azimuth (radians, clockwise from lidar +x) at device time t (ns)."""
         turns_per_ns = self.settings.rpm / 60.0 / 1e9
         return 2 * math.pi * ((t * turns_per_ns) % 1.0)
 
-    def _batch(self, trajectory: Trajectory, t_packet: np.ndarray) -> bytes:
+    def _batch(self, trajectory: Trajectory, t_packet: np.ndarray, t_device: np.ndarray) -> bytes:
         s = self.settings
         block_start = t_packet[:, None] + np.arange(m.BLOCKS_PER_PACKET) * m.BLOCK_NS  # (P,12)
         t_fire = block_start[:, :, None] + self._t_in_block  # (P, 12, 32)
@@ -263,7 +276,7 @@ class Vlp16Emulator:
             block_azimuth % 36000,
             units.reshape(t_fire.shape),
             reflectivity.reshape(t_fire.shape),
-            (t_packet // 1000) % (m.HOUR_NS // 1000),
+            (t_device // 1000) % (m.HOUR_NS // 1000),
         )
 
 

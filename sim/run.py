@@ -20,9 +20,13 @@ import numpy as np
 
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration, load_calibration
+from treetraits.drivers.velodyne import models as m
+from treetraits.drivers.velodyne.encode import encode_position
+from treetraits.drivers.velodyne.packet import resolve_hour
+from treetraits.drivers.velodyne.telemetry import PPS_LOCKED
 from treetraits.sim.camera import CameraSettings, Survey3Emulator
 from treetraits.sim.clutter import MATERIALS, ClutterSettings, ObjectTruth, place_clutter
-from treetraits.sim.gnss import GnssEmulator, GnssSettings, UtmZone
+from treetraits.sim.gnss import GnssEmulator, GnssSettings, UtmZone, lat_field, lon_field, sentence
 from treetraits.sim.lidar import LidarSettings, Scene, Vlp16Emulator, _poses
 from treetraits.sim.orchard import (
     Ground,
@@ -53,6 +57,8 @@ START_UTC = dt.datetime(2026, 5, 12, 17, 0, 0, tzinfo=dt.UTC)
 ORIGIN_UTM = (467_000.0, 3_758_000.0)
 UTM_ZONE = 11
 LATENCY_NS = {"lidar": 300_000, "camera": 30_000_000, "gnss": 60_000_000, "wheels": 2_000_000}
+# A VLP-16 sends a position packet about every 14 data packets (VLP-16 manual Rev D 9.3.3).
+POSITION_EVERY = 14
 
 
 @dataclass(frozen=True)
@@ -76,6 +82,9 @@ class SurveySettings:
     # base_link), replacing the calibration's: written into the recording's calibration,
     # so replay removes the lever arm the receiver saw. None: the calibration's.
     antenna: tuple[float, float, float] | None = None
+    # The host's realtime clock minus UTC (s): a robot without NTP in the field. Every
+    # message's log_time (and the camera's and wheels' host-clock stamps) carries it.
+    host_clock_offset_s: float = 0.0
     camera_rate_hz: float = 10.0
     camera: CameraSettings = field(default_factory=lambda: CameraSettings(render_scale=0.25))
     lidar: LidarSettings = field(default_factory=LidarSettings)
@@ -301,19 +310,28 @@ def simulate_survey(
     )
 
     messages: list[tuple[int, str, bytes, int]] = []  # (log_time, topic, data, publish_time)
+    host = round(s.host_clock_offset_s * 1e9)  # the host clock is UTC + this
     t_end = t0_ns + int(duration_s * 1e9)
-    for t_device, payload in lidar.packets(pose_at, t0_ns, t_end):
-        messages.append((t_device + LATENCY_NS["lidar"], rec.LIDAR_PACKETS, payload, t_device))
+    for index, (t, payload) in enumerate(lidar.packets(pose_at, t0_ns, t_end)):
+        # A packet leaves the sensor once its 12 blocks have fired.
+        log_time = t + m.PACKET_NS_SINGLE + LATENCY_NS["lidar"] + host
+        toh = int(lidar.device_time(t, t0_ns)) // 1000
+        # publish_time: the ToH with the hour of log_time (recording format v1).
+        messages.append((log_time, rec.LIDAR_PACKETS, payload, _on_hour(toh, log_time)))
+        if s.lidar.gps_sync and index % POSITION_EVERY == 0:
+            position = position_packet(t, zone, place, pose_values)
+            stamp = _on_hour(t // 1000, log_time)
+            messages.append((log_time, rec.LIDAR_TELEMETRY, position, stamp))
     if progress:
         progress(0.5)
     if camera is not None:
         for t in np.arange(t0_ns, t_end, int(1e9 / s.camera_rate_hz)):
             messages.append(
                 (
-                    int(t) + LATENCY_NS["camera"],
+                    int(t) + LATENCY_NS["camera"] + host,
                     rec.CAMERA_JPEG,
                     camera.jpeg(_poses(*pose_values(t))[0], int(t)),
-                    int(t),
+                    int(t) + host,
                 )
             )
     if progress:
@@ -329,11 +347,11 @@ def simulate_survey(
         utc = START_UTC + dt.timedelta(microseconds=(int(t) - t0_ns) // 1000)
         attitude = None if level else (z, *tilt)
         east, north, bearing = place.offset(x, y, yaw)
-        for sentence in gnss.epoch(
+        for framed in gnss.epoch(
             (int(t) - t0_ns) / 1e9, utc, east, north, bearing, speed, attitude
         ):
-            messages.append((int(t) + LATENCY_NS["gnss"], rec.GNSS_NMEA, sentence, int(t)))
-    messages.append((t0_ns, rec.WHEELS_JACKAL, mcu.handshake(), t0_ns))
+            messages.append((int(t) + LATENCY_NS["gnss"] + host, rec.GNSS_NMEA, framed, int(t)))
+    messages.append((t0_ns + host, rec.WHEELS_JACKAL, mcu.handshake(), t0_ns + host))
     for t in np.arange(t0_ns, t_end, int(1e9 / s.wheels.rate_hz)):
         x, y, z, yaw, *_ = pose_values(t)
         data = mcu.feedback(int(t), x, y, yaw, None if level else z)
@@ -342,7 +360,8 @@ def simulate_survey(
             # one read of the port.
             omega, force = imu_truth(pose_at, int(t), s.wheels.imu_difference_s)
             data += mcu.imu(int(t), omega, force)
-        messages.append((int(t) + LATENCY_NS["wheels"], rec.WHEELS_JACKAL, data, int(t)))
+        log_time = int(t) + LATENCY_NS["wheels"] + host
+        messages.append((log_time, rec.WHEELS_JACKAL, data, log_time))
     messages.sort(key=lambda m: (m[0], m[1]))
 
     out = Path(out)
@@ -365,6 +384,26 @@ def simulate_survey(
     return SurveyResult(
         out, truth_csv, field_map, truths, duration_s, counts, objects_csv, world.objects
     )
+
+
+def _on_hour(toh_us: int, t_ref: int) -> int:
+    """A ToH as full ns, with the hour that puts it nearest `t_ref`."""
+    return int(resolve_hour(np.array([toh_us]), np.array([t_ref]))[0])
+
+
+def position_packet(t: int, zone: UtmZone, place: Placement, pose_values) -> bytes:
+    """The position packet a GPS-locked VLP-16 sends at UTC `t` (ns): its ToH, PPS locked,
+    and the receiver's RMC of the last whole second (the robot's position then)."""
+    second = t - t % 1_000_000_000
+    x, y, _, yaw, *_ = pose_values(second)
+    east, north, _ = place.offset(x, y, yaw)
+    lat, lon = zone.inverse(east, north)
+    utc = dt.datetime.fromtimestamp(second / 1e9, dt.UTC)
+    lat_text, ns = lat_field(lat)
+    lon_text, ew = lon_field(lon)
+    body = f"GPRMC,{utc:%H%M%S}.00,A,{lat_text},{ns},{lon_text},{ew},,,{utc:%d%m%y},,,D"
+    rmc = sentence(body).decode("ascii").rstrip("\r\n")
+    return encode_position(t // 1000, PPS_LOCKED, rmc)
 
 
 def _write_truth(path: Path, truths: list[TreeTruth], zone: UtmZone, place: Placement) -> None:

@@ -14,6 +14,7 @@ import pytest
 from tests.conftest import FIXTURES
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import load_calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.sources import open_gnss_source
@@ -23,10 +24,14 @@ from treetraits.drivers.velodyne.reader import LidarReader
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.firmware_bridge.jackal.session import decode_stream
 from treetraits.pipeline.localization import LocalizationConfig, Localizer
+from treetraits.service.config import ServiceConfig
+from treetraits.service.replay import make_processor, open_input
 from treetraits.sim.gnss import GnssSettings
+from treetraits.sim.lidar import LidarSettings
 from treetraits.sim.paths import drive, waypoints
 from treetraits.sim.run import (
     LATENCY_NS,
+    START_UTC,
     SurveySettings,
     placement,
     simulate_survey,
@@ -185,3 +190,52 @@ def test_nmea_info_measures_the_receivers_latency_in_a_recording(survey):
     assert facts["latency_ms"] == pytest.approx(LATENCY_NS["gnss"] / 1e6, abs=1.0)
     log = FIXTURES / "nmea" / "ublox-zed-f9p-nmea.nmea"
     assert summarise(open_gnss_source(log))["latency_ms"] is None
+
+
+def test_a_gps_locked_lidar_puts_the_fixes_on_a_host_clock_off_utc(tmp_path):
+    """A robot whose host clock is 20 s off UTC (no NTP in the field) and a VLP-16 with the
+    receiver on its GPS input: the position packets measure the host clock's offset, so
+    every fix lands at its epoch on the host clock (the receiver's 60 ms latency measured,
+    not assumed) and the poses follow the true path at host times. The same bytes without
+    the position packets fall back on the configured latency."""
+    host_ahead_s = 20.0
+    settings = SurveySettings(
+        goal=7.0,
+        seed=3,
+        host_clock_offset_s=host_ahead_s,
+        lidar=dataclasses.replace(LidarSettings(), gps_sync=True),
+    )
+    survey = simulate_survey(tmp_path / "locked.mcap", settings)
+    assert survey.counts[rec.LIDAR_TELEMETRY] == pytest.approx(
+        survey.counts[rec.LIDAR_PACKETS] / 14, abs=1
+    )
+
+    def processed(with_telemetry: bool):
+        source = open_input(survey.recording, None, 0.0, 0.05)
+        processor = make_processor(ServiceConfig(), load_calibration(source.calibration))
+        for topic, data, log_time, publish_time in source.messages:
+            if with_telemetry or topic != rec.LIDAR_TELEMETRY:
+                processor.feed(topic, data, log_time, publish_time)
+        processor.finish()
+        return processor
+
+    locked = processed(with_telemetry=True)
+    clock = locked.lidar_clock.stats
+    assert clock.telemetry_unlocked == 0 and clock.telemetry_locked > 100
+    assert clock.scans_on_utc == locked.stats.scans + locked.stats.scans_skipped
+    # The offset is the host's 20 s plus the LiDAR's 0.3 ms transport.
+    assert clock.host_minus_utc_ms == pytest.approx(host_ahead_s * 1e3, abs=0.5)
+    assert locked.localizer.stats.latency_ms == pytest.approx(LATENCY_NS["gnss"] / 1e6, abs=0.5)
+    place = placement(settings)
+    truth = drive(waypoints(settings.path, settings.width, settings.length, settings.goal))
+    t0_host = START_UTC.timestamp() * 1e9 + host_ahead_s * 1e9
+    errors = []
+    for t, x, y, _yaw in truth[200::50]:
+        pose = locked.localizer.pose_at(int(t0_host + t * 1e9))
+        if pose is not None:
+            errors.append(math.hypot(pose.x - place.utm(x, y)[0], pose.y - place.utm(x, y)[1]))
+    assert len(errors) > 15 and max(errors) < 0.05
+
+    unlocked = processed(with_telemetry=False)
+    assert unlocked.lidar_clock.stats.scans_on_utc == 0
+    assert unlocked.localizer.stats.latency_ms is None  # 20 s off: the host is not on UTC

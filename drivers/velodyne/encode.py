@@ -1,7 +1,10 @@
-"""VLP-16 data packets from arrays: the inverse of `packet.view_packets`, for the
-digital twin and for tests. Vectorised: one structured array filled field by field."""
+"""VLP-16 data packets from arrays (the inverse of `packet.view_packets`) and position
+packets, for the digital twin and for tests. Vectorised: one structured array filled
+field by field."""
 
 from __future__ import annotations
+
+import struct
 
 import numpy as np
 
@@ -45,3 +48,18 @@ def encode_packets(
     packets["return_mode"] = return_mode
     packets["product"] = product
     return packets.tobytes()
+
+
+def encode_position(toh_us: int, pps_status: int, nmea: str | None) -> bytes:
+    """One 512-byte position packet (port 8308): the ToH at 198, the PPS status at 202 and
+    the NMEA sentence (with its CR LF) at 206..333, every other byte 0 (as a sensor without
+    temperature fields sends it). The inverse of `telemetry.decode_telemetry`."""
+    payload = bytearray(m.POSITION_PACKET_SIZE)
+    struct.pack_into("<I", payload, 198, toh_us % (m.HOUR_NS // 1000))
+    payload[202] = pps_status
+    if nmea:
+        text = (nmea + "\r\n").encode("ascii")
+        if len(text) > 334 - 206:
+            raise ValueError(f"NMEA sentence too long for a position packet: {len(text)} bytes")
+        payload[206 : 206 + len(text)] = text
+    return bytes(payload)

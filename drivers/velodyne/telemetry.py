@@ -14,6 +14,7 @@ from treetraits.drivers.velodyne.models import POSITION_PACKET_SIZE
 from treetraits.errors import ParseError
 
 PPS_STATUS_NAMES = {0: "absent", 1: "synchronizing", 2: "locked", 3: "error"}
+PPS_LOCKED = 2  # the ToH counts on UTC (PPS and NMEA both received)
 _TOH = struct.Struct("<I")
 _NMEA_START, _NMEA_END = 206, 334
 

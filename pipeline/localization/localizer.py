@@ -94,6 +94,9 @@ class Localizer:
         self._rejected_in_a_row = 0
         self._headings_rejected_in_a_row = 0
         self._t = 0
+        # The host clock's offset from UTC where a UTC source measures it (a PPS-locked
+        # VLP-16: `lidar_clock.LidarUtcClock`), else None.
+        self.host_minus_utc: int | None = None
         self._odom_history = _History()
         self._utm_history = _History()
         lever_pose = np.eye(4) if T_base_gnss is None else T_base_gnss
@@ -285,17 +288,19 @@ class Localizer:
         return None
 
     def epoch_time(self, fix: Fix) -> int:
-        """When, on the host clock, the robot was where the fix says (ns). With the host
-        clock on UTC (NTP or PPS: the fix arrived within `gnss_clock_tolerance_s` of its
-        UTC) that is the epoch's UTC itself, and the arrival delay is the receiver's
-        latency, measured (`stats.latency_ms`); else the arrival less the configured
+        """When, on the host clock, the robot was where the fix says (ns): the epoch's UTC
+        moved onto the host clock by `host_minus_utc` when a UTC source measures it, else
+        taken as is when the host clock is on UTC (NTP or PPS: the fix arrived within
+        `gnss_clock_tolerance_s` of its UTC). Then the arrival delay is the receiver's
+        latency, measured (`stats.latency_ms`). Otherwise the arrival less the configured
         `gnss_latency_s`."""
         c = self.config
         if fix.utc_ns is not None:
-            delay = fix.t_host - fix.utc_ns
+            placed = fix.utc_ns + (self.host_minus_utc or 0)
+            delay = fix.t_host - placed
             if 0 <= delay <= c.gnss_clock_tolerance_s * 1e9:
                 self.stats.latency_ms = delay / 1e6
-                return fix.utc_ns
+                return placed
         return fix.t_host - int(c.gnss_latency_s * 1e9)
 
     def _motion_since(self, t: int) -> tuple[np.ndarray, float]:

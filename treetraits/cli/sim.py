@@ -13,6 +13,7 @@ from treetraits.drivers.calibration import load_calibration
 from treetraits.errors import ConfigError
 from treetraits.sim.clutter import ClutterSettings
 from treetraits.sim.gnss import GnssSettings
+from treetraits.sim.lidar import LidarSettings
 from treetraits.sim.orchard import TerrainSettings, TreeSettings, WindSettings
 from treetraits.sim.paths import PATHS
 from treetraits.sim.run import SurveySettings, simulate_survey
@@ -105,6 +106,21 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="the GNSS antenna's position on the robot in metres (x forward, y left, z up "
         "from base_link), written into the recording's calibration (default: the "
         "calibration's)",
+    )
+    sim.add_argument(
+        "--lidar-gps",
+        action="store_true",
+        help="the receiver also feeds the VLP-16's GPS input: its ToH counts on UTC and it "
+        "sends position packets (PPS locked, $GPRMC); default: no GPS input, its ToH counts "
+        "from power-on",
+    )
+    sim.add_argument(
+        "--host-clock-offset",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="the host clock minus UTC, for a robot without NTP (default 0); every receive "
+        "time carries it",
     )
     ground = sim.add_argument_group("terrain (default: flat)")
     ground.add_argument(
@@ -261,6 +277,7 @@ def run_sim(args: argparse.Namespace) -> int:
     if not 0 <= args.weeds <= 5000:
         raise ConfigError(f"--weeds is a number of clumps in [0, 5000], got {args.weeds}")
     _within("--field-heading", args.field_heading, -360, 360)
+    _within("--host-clock-offset", args.host_clock_offset, -86400, 86400)
     if args.wires and not args.posts:
         raise ConfigError("--wires hang between posts: add --posts")
     settings = SurveySettings(
@@ -274,6 +291,8 @@ def run_sim(args: argparse.Namespace) -> int:
         goal=args.goal,
         field_heading_deg=args.field_heading,
         antenna=_antenna(args.antenna) if args.antenna else None,
+        host_clock_offset_s=args.host_clock_offset,
+        lidar=dataclasses.replace(LidarSettings(), gps_sync=args.lidar_gps),
         gnss=dataclasses.replace(
             GnssSettings(),
             quality=QUALITIES[args.gnss],
