@@ -24,6 +24,14 @@ class GnssSettings:
     dual_antenna: bool = False  # sends HDT (true heading) when True
     heading_sigma_deg: float = 0.3
     outages: tuple[tuple[float, float], ...] = ()  # (start s, end s) from the run's start
+    # A receiver still converging: RTK float (quality 5) until this many seconds from the
+    # start, then `quality` (None: `quality` throughout).
+    converge_s: float | None = None
+    # A float, DGPS or autonomous solution's error is not white: it wanders with the
+    # satellite geometry and the atmosphere over minutes. Modelled as a first-order
+    # Gauss-Markov process of this time constant with the quality's sigma; RTK fixed
+    # stays white (centimetres, the ambiguities resolved).
+    error_time_constant_s: float = 60.0
     satellites: int = 18
     hdop: float = 0.7
     geoid_separation_m: float = -32.5  # California-like
@@ -121,6 +129,18 @@ class GnssEmulator:
         self.lever = np.asarray(T_base_gnss, dtype=float)[:3, 3]
         self.settings = settings or GnssSettings()
         self.rng = rng or np.random.default_rng(0)
+        self._wander: tuple[float, np.ndarray] | None = None  # (t_s, east-north error)
+
+    def _wandering_error(self, t_s: float, sigma: float) -> np.ndarray:
+        """The next value of the error's Gauss-Markov process (drawn afresh, stationary,
+        at the first epoch of a non-fixed stretch)."""
+        if self._wander is None:
+            error = self.rng.normal(0, sigma, 2)
+        else:
+            decay = math.exp(-(t_s - self._wander[0]) / self.settings.error_time_constant_s)
+            error = decay * self._wander[1] + math.sqrt(1 - decay**2) * self.rng.normal(0, sigma, 2)
+        self._wander = (t_s, error)
+        return error
 
     def epoch(
         self,
@@ -138,7 +158,7 @@ class GnssEmulator:
         s = self.settings
         if any(start <= t_s < end for start, end in s.outages):
             return []  # no sentences at all: the receiver lost the sky (or its link)
-        quality = s.quality
+        quality = s.quality if s.converge_s is None or t_s >= s.converge_s else 5
         sigma = QUALITY_SIGMA_M[quality]
         c, si = math.cos(yaw), math.sin(yaw)
         if attitude is None:
@@ -155,8 +175,13 @@ class GnssEmulator:
             )
         east = self.origin[0] + x + c * lever[0] - si * lever[1]
         north = self.origin[1] + y + si * lever[0] + c * lever[1]
-        east += self.rng.normal(0, sigma)
-        north += self.rng.normal(0, sigma)
+        if quality == 4:
+            east += self.rng.normal(0, sigma)
+            north += self.rng.normal(0, sigma)
+            self._wander = None
+        else:
+            error = self._wandering_error(t_s, sigma)
+            east, north = east + error[0], north + error[1]
         lat, lon = self.grid.inverse(east, north)
         convergence = self.grid.convergence_rad(lat, lon)
         true_heading = (90.0 - math.degrees(yaw - convergence)) % 360.0

@@ -59,6 +59,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="receiver fix quality (default rtk)",
     )
     sim.add_argument(
+        "--gnss-converge",
+        type=float,
+        metavar="SECONDS",
+        help="the receiver is in RTK float for this long from the start, then reaches "
+        "--gnss (a receiver converging: typically 30-120 s)",
+    )
+    sim.add_argument(
         "--dual-antenna", action="store_true", help="the receiver also sends a true heading (HDT)"
     )
     sim.add_argument(
@@ -278,6 +285,8 @@ def run_sim(args: argparse.Namespace) -> int:
         raise ConfigError(f"--weeds is a number of clumps in [0, 5000], got {args.weeds}")
     _within("--field-heading", args.field_heading, -360, 360)
     _within("--host-clock-offset", args.host_clock_offset, -86400, 86400)
+    if args.gnss_converge is not None:
+        _within("--gnss-converge", args.gnss_converge, 0, 86400)
     if args.wires and not args.posts:
         raise ConfigError("--wires hang between posts: add --posts")
     settings = SurveySettings(
@@ -298,6 +307,7 @@ def run_sim(args: argparse.Namespace) -> int:
             quality=QUALITIES[args.gnss],
             dual_antenna=args.dual_antenna,
             outages=tuple(outages),
+            converge_s=args.gnss_converge,
         ),
         wind=WindSettings(speed_mps=args.wind, direction_deg=args.wind_direction),
         terrain=TerrainSettings(

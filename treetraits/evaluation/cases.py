@@ -280,7 +280,7 @@ LOCALIZATION_CASES: tuple[Case, ...] = (
     ),
     Case(
         "field-float-n",
-        "field: RTK float (0.3 m), block at -60 deg, N path",
+        "field: RTK float (0.25 m), block at -60 deg, N path",
         SurveySettings(
             path="n",
             rows=2,
@@ -293,6 +293,22 @@ LOCALIZATION_CASES: tuple[Case, ...] = (
         suite="field",
         tests="a float receiver: positions within 1.5x its sigma, no duplicates from a "
         "wandering pose when the robot comes back along the trees",
+    ),
+    Case(
+        "field-converging-n",
+        "field: RTK float for the first 60 s, then fixed; block at 150 deg, N path",
+        SurveySettings(
+            path="n",
+            rows=2,
+            length=4.0,
+            goal=9.0,
+            field_heading_deg=150.0,
+            gnss=GnssSettings(converge_s=60.0),
+        ),
+        (),
+        suite="field",
+        tests="a receiver that reaches RTK fixed a minute into the survey: the trees seen "
+        "in float are seen again in fixed from the return lanes, once each, in place",
     ),
     Case(
         "field-late-fix",
