@@ -183,7 +183,8 @@ class SurveyProcessor:
         self.localizer.add_wheels(sample)
         # The wheels' speed lets the attitude filter take the robot's own acceleration
         # out of the accelerometer, and tells it when the robot stands still.
-        self.attitude.add_speed(sample.t_host, self.localizer.speed)
+        if (speed := self.localizer.speed) is not None:
+            self.attitude.add_speed(sample.t_host, speed)
 
     def _add_fix(self, fix: Fix) -> None:
         self.stats.fixes += 1

@@ -91,6 +91,7 @@ class Localizer:
         self._gyro_t: int | None = None
         self._gyro_turn = 0.0  # integrated since the last wheel sample, rad
         self._motion = _Motion()
+        self._moved = False  # a wheel step seen: `_motion` is measured
         self._rejected_in_a_row = 0
         self._headings_rejected_in_a_row = 0
         self._t = 0
@@ -123,6 +124,7 @@ class Localizer:
         if gyro_turn is not None:
             turn = gyro_turn  # a skid steer's wheels scrub in a turn; the gyro does not
         self._motion = _Motion(speed=distance / dt, yaw_rate=turn / dt)
+        self._moved = True
 
         yaw = self._odom[2] + turn / 2
         self._odom = np.array(
@@ -326,9 +328,11 @@ class Localizer:
         return rotate_xy(moved, float(self._filter.state[2]) - now.yaw), turn
 
     @property
-    def speed(self) -> float:
-        """The forward speed of the latest wheel step (m/s; 0 before two samples)."""
-        return self._motion.speed
+    def speed(self) -> float | None:
+        """The forward speed of the latest wheel step (m/s); None before the first step
+        (one sample is no speed: a service started on a moving robot must not report a
+        standstill, whose jump to the true speed would read as a hard acceleration)."""
+        return self._motion.speed if self._moved else None
 
     @property
     def heading_known(self) -> bool:
