@@ -90,8 +90,15 @@ class PaperTraits:
         self.config = config
         self.top_ring: int | None = None
         self.height = float("nan")
-        self.width = float("nan")
+        # The largest per-scan widths, at most `width_confirm_scans`, largest first.
+        self._widths: list[float] = []
         self._outline = RobustTraits(config)
+
+    @property
+    def width(self) -> float:
+        """The largest width that `width_confirm_scans` scans reached (with fewer scans
+        measured, the smallest of them: the best there is); NaN before any."""
+        return self._widths[-1] if self._widths else float("nan")
 
     def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
         """One cluster of this tree (points in `base`, ground height under it in `base`;
@@ -105,16 +112,23 @@ class PaperTraits:
         if self.top_ring is None or int(ring[top]) != self.top_ring:
             self.top_ring = int(ring[top])
             self.height = _max(self.height, float(points_base[top, 2] - ground_z_base))
-        # Width: the widest slice of this cluster; keep the largest over scans (slices that
-        # cannot beat the kept maximum are not measured).
-        floor = 0.0 if math.isnan(self.width) else self.width
-        self.width = _max(self.width, slice_width(points_base, self.config.slices, floor))
+        # Width: the widest slice of this cluster; keep the largest few over scans (slices
+        # that cannot enter them are not measured).
+        full = len(self._widths) >= self.config.width_confirm_scans
+        floor = self._widths[-1] if full else 0.0
+        width = slice_width(points_base, self.config.slices, floor)
+        if width > floor or not full:
+            self._keep_widths([width])
 
     def absorb(self, other: PaperTraits) -> None:
         """Another track of the same tree merged into this one."""
         self.height = _max(self.height, other.height)
-        self.width = _max(self.width, other.width)
+        self._keep_widths(other._widths)
         self._outline.absorb(other._outline)
+
+    def _keep_widths(self, widths: list[float]) -> None:
+        kept = sorted(self._widths + widths, reverse=True)
+        self._widths = kept[: self.config.width_confirm_scans]
 
     def centre(self) -> np.ndarray | None:
         return self._outline.centre()

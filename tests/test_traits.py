@@ -67,15 +67,24 @@ def test_height_is_registered_when_the_top_ring_changes_and_the_maximum_kept():
     assert traits.width == pytest.approx(2.0, rel=1e-3)  # the ring r 1.0, the widest
 
 
-def test_width_keeps_the_maximum_over_scans():
+def test_width_is_the_largest_that_two_scans_reached():
+    """The paper's maximum over scans, confirmed: a width one scan alone saw (a
+    neighbour's crown joined for a scan) does not count; `width_confirm_scans` 1 is the
+    paper's plain maximum."""
     traits = PaperTraits(CONFIG)
-    for radius in (1.0, 1.4, 1.2):
+    traits.observe(ring(1.0, 1.0), np.zeros(72, dtype=np.uint8), 0.0)
+    assert traits.width == pytest.approx(2.0, rel=1e-3)  # one scan: the best there is
+    for radius in (1.4, 1.2, 2.5):  # 2.5: a 5 m "crown" in one scan
         traits.observe(ring(radius, 1.0), np.zeros(72, dtype=np.uint8), 0.0)
     assert traits.width == pytest.approx(2.8, rel=1e-3)
     other = PaperTraits(CONFIG)
     other.observe(ring(1.5, 3.0), np.zeros(72, dtype=np.uint8), 0.0)
-    traits.absorb(other)
+    traits.absorb(other)  # a track of the same tree: its scans count with ours
     assert traits.width == pytest.approx(3.0, rel=1e-3) and traits.height == pytest.approx(3.0)
+    plain = PaperTraits(dataclasses.replace(CONFIG, width_confirm_scans=1))
+    for radius in (1.0, 1.4, 1.2):
+        plain.observe(ring(radius, 1.0), np.zeros(72, dtype=np.uint8), 0.0)
+    assert plain.width == pytest.approx(2.8, rel=1e-3)
 
 
 # --- the robust estimator -------------------------------------------------------------
