@@ -362,7 +362,7 @@ def _select(readers: list[Any], wanted: Mapping[str, str] | None) -> dict[str, T
     kind_of = {t: k for k, types in KIND_TYPES.items() for t in types}
     taken: dict[str, str] = {}
     by_topic = {topic: kind for kind, topic in (wanted or {}).items()}
-    for report in reports.values():
+    for report in sorted(reports.values(), key=lambda r: r.topic):  # first by name wins
         kind = kind_of.get(report.msgtype or "")
         if report.msgtype in NOT_IMPORTED_YET:
             report.kind = NOT_IMPORTED_YET[report.msgtype]
