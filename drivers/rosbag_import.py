@@ -9,7 +9,10 @@ the recording's channels (docs/import.md):
 - `sensor_msgs/NavSatFix`: GGA, RMC and GST sentences made from the numbers
   (`drivers/gnss/compose.py`), at the header stamp as UTC;
 - `sensor_msgs/Image` (rgb8, bgr8, mono8) JPEG-encoded, `sensor_msgs/CompressedImage`
-  (JPEG as is, others re-encoded) on `/camera/jpeg`.
+  (JPEG as is, others re-encoded) on `/camera/jpeg`;
+- `nav_msgs/Odometry` (its twist) on `/wheels/odometry` and `sensor_msgs/Imu` (rates and
+  accelerations) on `/imu/data`: format 1.1 (`drivers/motion.py`), so a recording holding
+  them is marked 1.1.
 
 Other messages keep the bag's receive time as `log_time`; `publish_time` follows the
 format's rules (LiDAR: the packet's ToH; GNSS: the epoch's UTC; camera: the header stamp).
@@ -34,6 +37,7 @@ import numpy as np
 from treetraits.drivers import recording as rec
 from treetraits.drivers.gnss.compose import fix_sentences
 from treetraits.drivers.gnss.times import NmeaClock
+from treetraits.drivers.motion import encode_imu, encode_odometry
 from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE
 from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.errors import ConfigError, SourceError
@@ -43,12 +47,14 @@ KIND_TYPES: Mapping[str, tuple[str, ...]] = {
     "lidar": ("velodyne_msgs/msg/VelodyneScan",),
     "gnss": ("nmea_msgs/msg/Sentence", "sensor_msgs/msg/NavSatFix"),
     "camera": ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"),
+    # Recording format 1.1 (drivers/motion.py).
+    "odom": ("nav_msgs/msg/Odometry",),
+    "imu": ("sensor_msgs/msg/Imu",),
 }
+MOTION_KINDS = frozenset({"odom", "imu"})
 # Types a survey needs that this importer cannot convert yet: listed in the summary.
 NOT_IMPORTED_YET: Mapping[str, str] = {
     "sensor_msgs/msg/PointCloud2": "points",
-    "nav_msgs/msg/Odometry": "odom",
-    "sensor_msgs/msg/Imu": "imu",
 }
 KINDS = (*KIND_TYPES, *NOT_IMPORTED_YET.values())
 
@@ -116,6 +122,7 @@ class ImportReport:
     first_log_time: int | None = None
     last_log_time: int | None = None
     out_of_order: int = 0  # written after a later log_time (beyond REORDER_WINDOW_NS)
+    format_version: str = rec.FORMAT_VERSION  # 1.1 when odometry or IMU was imported
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -125,6 +132,7 @@ class ImportReport:
             "first_log_time": self.first_log_time,
             "last_log_time": self.last_log_time,
             "out_of_order": self.out_of_order,
+            "format_version": self.format_version,
             "topics": [vars(t) for t in self.topics],
             "imported": [t.topic for t in self.topics if t.status == "imported"],
             "not_imported_yet": [t.topic for t in self.topics if t.status == "not imported yet"],
@@ -288,6 +296,22 @@ def compressed_image(msg: Any, log_time: int, jpeg_quality: int, report: TopicRe
             return []
         data = jpeg.tobytes()
     return [_Out(rec.CAMERA_JPEG, data, log_time, _stamp_ns(msg.header.stamp))]
+
+
+def odometry(msg: Any, log_time: int) -> list[_Out]:
+    """A nav_msgs/Odometry's twist (in its child frame, base_link): forward speed and yaw
+    rate; publish_time = header stamp."""
+    twist = msg.twist.twist
+    data = encode_odometry(float(twist.linear.x), float(twist.angular.z))
+    return [_Out(rec.WHEELS_ODOMETRY, data, log_time, _stamp_ns(msg.header.stamp))]
+
+
+def imu(msg: Any, log_time: int) -> list[_Out]:
+    """A sensor_msgs/Imu's angular velocity and linear acceleration (its orientation is not
+    kept: the attitude filter makes its own); publish_time = header stamp."""
+    w, a = msg.angular_velocity, msg.linear_acceleration
+    data = encode_imu((w.x, w.y, w.z), (a.x, a.y, a.z))
+    return [_Out(rec.IMU_DATA, data, log_time, _stamp_ns(msg.header.stamp))]
 
 
 def default_typestore() -> Any:
@@ -460,9 +484,14 @@ def _convert(
             report.last_log_time = max(report.last_log_time or 0, log_time)
 
     merged = heapq.merge(*streams, key=lambda item: (item[0], item[1]))
+    motion = any(r.kind in MOTION_KINDS and r.status == "imported" for r in reports.values())
     with rec.RecordingWriter(
-        output, calibration=options.calibration, overwrite=options.overwrite
+        output,
+        calibration=options.calibration,
+        overwrite=options.overwrite,
+        format_version=rec.FORMAT_VERSION_MOTION if motion else rec.FORMAT_VERSION,
     ) as writer:
+        report.format_version = writer.format_version
         index = 0
         try:
             for done, (timestamp, index, connection, raw) in enumerate(merged, 1):
@@ -497,4 +526,8 @@ def _messages(
         return image(message, log_time, options.jpeg_quality, topic)
     if msgtype == "sensor_msgs/msg/CompressedImage":
         return compressed_image(message, log_time, options.jpeg_quality, topic)
+    if msgtype == "nav_msgs/msg/Odometry":
+        return odometry(message, log_time)
+    if msgtype == "sensor_msgs/msg/Imu":
+        return imu(message, log_time)
     raise AssertionError(f"no conversion for {msgtype}")  # _select imports only the above

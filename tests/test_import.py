@@ -5,6 +5,7 @@ recordings go through `treetraits replay` and the NMEA decoders."""
 
 from __future__ import annotations
 
+import csv
 import itertools
 import json
 import subprocess
@@ -21,15 +22,19 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from tests.conftest import FIXTURES, VLP16_DIR, decode_file
 from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import load_calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.sources import LogSource, open_gnss_source
 from treetraits.drivers.gnss.summary import summarise
 from treetraits.drivers.gnss.times import sentence_time
-from treetraits.drivers.records import Fix
+from treetraits.drivers.records import Fix, WheelSample
 from treetraits.drivers.rosbag_import import ImportOptions, import_bags
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
+from treetraits.firmware_bridge.jackal.records import JackalImu
+from treetraits.firmware_bridge.jackal.session import JackalProtocol
+from treetraits.sim.run import SurveySettings, simulate_survey
 
 NEBULA_BAG = VLP16_DIR / "nebula_vlp16_dual_10hz_bag"
 NEBULA_PCAP = VLP16_DIR / "nebula_vlp16_dual_10hz.pcap"
@@ -224,8 +229,8 @@ def _split(data: bytes) -> list:
     return [*splitter.push(data, 0), *splitter.flush()]
 
 
-def replay(recording: Path, out: Path) -> dict:
-    result = cli("replay", str(recording), "--out", str(out), "--json")
+def replay(recording: Path, out: Path, *options: str) -> dict:
+    result = cli("replay", str(recording), "--out", str(out), "--json", *options)
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout)
 
@@ -469,3 +474,152 @@ def test_a_damaged_bag_is_one_line_and_exit_2(tmp_path):
         assert not out.exists()
     with pytest.raises(SourceError, match="no such bag"):
         import_bags([tmp_path / "nope.bag"], tmp_path / "out.mcap")
+
+
+# --- the twin as a CitrusFarm-shaped ROS 1 bag, odometry and IMU included (format 1.1) ---
+
+
+def twin_rows(store, recording: Path) -> list[tuple]:
+    """A twin recording as the ROS topics a Jackal survey records: VelodyneScan (a
+    message per 76 packets, each packet at its receive time), nmea_msgs/Sentence,
+    CompressedImage, and the MCU's wheels and IMU as nav_msgs/Odometry (the twist of each
+    wheel step, as jackal_velocity_controller reports it) and sensor_msgs/Imu."""
+    calibration = load_calibration(rec.read_recording(recording).metadata.calibration)
+    wheels = calibration.wheels
+    T = store.types
+    rows: list[tuple] = []
+    packets: list = []
+    mcu = JackalProtocol()
+    previous = None
+    for m in rec.read_recording(recording):
+        if m.topic == rec.LIDAR_PACKETS:
+            packets.append(m)
+            if len(packets) == 76:
+                rows.append(_scan_row(store, packets))
+                packets = []
+        elif m.topic == rec.GNSS_NMEA:
+            msg = T["nmea_msgs/msg/Sentence"](
+                header=header(store, m.log_time, "gps", True),
+                sentence=m.data.decode("ascii").rstrip("\r\n"),
+            )
+            rows.append((m.log_time, "/nmea_sentence", msg.__msgtype__, msg))
+        elif m.topic == rec.CAMERA_JPEG:
+            msg = T["sensor_msgs/msg/CompressedImage"](
+                header=header(store, m.publish_time, "mapir", True),
+                format="jpeg",
+                data=np.frombuffer(m.data, dtype=np.uint8).copy(),
+            )
+            rows.append((m.log_time, "/mapir_cam/image_raw/compressed", msg.__msgtype__, msg))
+        elif m.topic == rec.WHEELS_JACKAL:
+            for record in mcu.receive(m.data, m.log_time, m.log_time / 1e9):
+                if isinstance(record, WheelSample):
+                    speed = turn = 0.0
+                    if previous is not None and record.t_host > previous.t_host:
+                        dt = (record.t_host - previous.t_host) / 1e9
+                        left = wheels.metres(record.left - previous.left, record.unit)
+                        right = wheels.metres(record.right - previous.right, record.unit)
+                        speed, turn = (left + right) / 2 / dt, (right - left) / wheels.track / dt
+                    previous = record
+                    rows.append(_odometry_row(store, record.t_host, speed, turn))
+                elif isinstance(record, JackalImu):
+                    rows.append(_imu_row(store, record))
+            mcu.take_outgoing()
+    if packets:
+        rows.append(_scan_row(store, packets))
+    return rows
+
+
+def _scan_row(store, packets: list) -> tuple:
+    T = store.types
+    msg = T["velodyne_msgs/msg/VelodyneScan"](
+        header=header(store, packets[0].log_time, "velodyne", True),
+        packets=[
+            T["velodyne_msgs/msg/VelodynePacket"](
+                stamp=stamp(store, p.log_time), data=np.frombuffer(p.data, np.uint8).copy()
+            )
+            for p in packets
+        ],
+    )
+    return (packets[-1].log_time + 1_000_000, "/velodyne_packets", msg.__msgtype__, msg)
+
+
+def _vector(store, x: float, y: float, z: float):
+    return store.types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z)
+
+
+def _odometry_row(store, t: int, speed: float, turn: float) -> tuple:
+    T = store.types
+    twist = T["geometry_msgs/msg/Twist"](
+        linear=_vector(store, speed, 0.0, 0.0), angular=_vector(store, 0.0, 0.0, turn)
+    )
+    pose = T["geometry_msgs/msg/Pose"](
+        position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    msg = T["nav_msgs/msg/Odometry"](
+        header=header(store, t, "odom", True),
+        child_frame_id="base_link",
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+        twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )
+    return (t, "/jackal_velocity_controller/odom", msg.__msgtype__, msg)
+
+
+def _imu_row(store, record) -> tuple:
+    T = store.types
+    msg = T["sensor_msgs/msg/Imu"](
+        header=header(store, record.t_host, "imu_link", True),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.array([-1.0, *[0.0] * 8]),
+        angular_velocity=_vector(store, *record.angular_velocity),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=_vector(store, *record.linear_acceleration),
+        linear_acceleration_covariance=np.zeros(9),
+    )
+    return (record.t_host, "/imu/data", msg.__msgtype__, msg)
+
+
+def trees_csv(run: Path) -> list[dict]:
+    with open(run / "trees.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_a_twin_survey_as_a_ros1_bag_maps_the_same_trees(tmp_path):
+    twin = simulate_survey(tmp_path / "twin.mcap", SurveySettings(seed=2, goal=12.0))
+    store = typestore(ros1=True)
+    bag = write_ros1(tmp_path / "twin.bag", store, twin_rows(store, twin.recording))
+    out = tmp_path / "imported.mcap"
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text(json.dumps(rec.read_recording(twin.recording).metadata.calibration))
+
+    report = import_bags([bag], out, ImportOptions(calibration=json.loads(calibration.read_text())))
+
+    assert report.format_version == "1.1"
+    assert rec.read_recording(out).metadata.format_version == "1.1"
+    original = {t: n for t, n in _counts(twin.recording).items() if t != rec.WHEELS_JACKAL}
+    imported = _counts(out)
+    for topic in (rec.LIDAR_PACKETS, rec.GNSS_NMEA, rec.CAMERA_JPEG):
+        assert imported[topic] == original[topic]
+    assert imported[rec.WHEELS_ODOMETRY] > 0 and imported[rec.IMU_DATA] > 0
+    # The sensors' bytes and times are the twin's own.
+    for topic in (rec.LIDAR_PACKETS, rec.GNSS_NMEA, rec.CAMERA_JPEG):
+        ours = [(m.data, m.log_time, m.publish_time) for m in recorded(out, topic)]
+        theirs = [(m.data, m.log_time, m.publish_time) for m in recorded(twin.recording, topic)]
+        assert ours == theirs, topic
+
+    # The field map is an attachment of the twin's recording, not a ROS topic: give both.
+    field_map = ("--field-map", str(twin.field_map))
+    ours = replay(out, tmp_path / "ours", *field_map)
+    theirs = replay(twin.recording, tmp_path / "theirs", *field_map)
+    assert ours["trees"] == theirs["trees"] >= 4
+    assert ours["scans"] == theirs["scans"]
+    for a, b in zip(trees_csv(tmp_path / "ours"), trees_csv(tmp_path / "theirs"), strict=True):
+        for key in ("easting", "northing", "width_m", "height_m"):
+            assert float(a[key]) == pytest.approx(float(b[key]), abs=0.01), key
+
+
+def _counts(path: Path) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for m in rec.read_recording(path):
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+    return counts
