@@ -8,7 +8,8 @@ be replayed through the same drivers later. The format (frozen, see docs/archite
   wire format (`TOPIC_ENCODINGS`);
 - `log_time` = host receive time, `publish_time` = the sensor's own UTC time where it has
   one, else the host time; both in ns since the Unix epoch;
-- a metadata record named `treetraits` holding `format_version` ("1"), `software` and
+- a metadata record named `treetraits` holding `format_version` ("1"; "1.1" for a
+  recording that carries the motion channels of `V11_TOPICS`), `software` and
   `calibration` (a JSON object as a string);
 - attachments may hold the field map (`field_map.geojson`).
 
