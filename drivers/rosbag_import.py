@@ -39,7 +39,7 @@ from treetraits.drivers.gnss.compose import fix_sentences
 from treetraits.drivers.gnss.times import NmeaClock
 from treetraits.drivers.motion import encode_imu, encode_odometry
 from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE
-from treetraits.drivers.velodyne.packet import lidar_publish_time
+from treetraits.drivers.velodyne.packet import resolve_hour
 from treetraits.errors import ConfigError, SourceError
 
 # Kinds a topic can be imported as (`--topics KIND=TOPIC`), and the ROS types of each.
@@ -179,16 +179,24 @@ def _stamp_ns(stamp: Any) -> int:
 
 
 def velodyne_scan(msg: Any, report: TopicReport) -> list[_Out]:
-    """A VelodyneScan's packets, byte for byte, each at its own stamp."""
-    out = []
+    """A VelodyneScan's packets, byte for byte, each at its own stamp; publish_time is the
+    packet's ToH on the hour of its stamp (`lidar_publish_time`, one NumPy call a scan)."""
+    payloads, stamps = [], []
     for packet in msg.packets:
         data = np.asarray(packet.data, dtype=np.uint8).tobytes()
         if len(data) != DATA_PACKET_SIZE:
             report.skip(f"packet of {len(data)} bytes")
             continue
-        t = _stamp_ns(packet.stamp)
-        out.append(_Out(rec.LIDAR_PACKETS, data, t, lidar_publish_time(data, t)))
-    return out
+        payloads.append(data)
+        stamps.append(_stamp_ns(packet.stamp))
+    if not payloads:
+        return []
+    toh_us = [int.from_bytes(data[1200:1204], "little") for data in payloads]
+    published = resolve_hour(np.array(toh_us), np.array(stamps, dtype=np.int64)).tolist()
+    return [
+        _Out(rec.LIDAR_PACKETS, data, t, p)
+        for data, t, p in zip(payloads, stamps, published, strict=True)
+    ]
 
 
 def nmea_sentence(msg: Any, log_time: int, clock: NmeaClock, report: TopicReport) -> list[_Out]:
