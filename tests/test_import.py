@@ -623,3 +623,23 @@ def _counts(path: Path) -> dict[str, int]:
     for m in rec.read_recording(path):
         counts[m.topic] = counts.get(m.topic, 0) + 1
     return counts
+
+
+def test_help_explains_every_option_and_bad_options_are_one_line(tmp_path):
+    result = cli("import", "--help")
+    assert result.returncode == 0 and result.stdout.startswith("usage: treetraits import")
+    for option in (
+        "--out", "--topics", "--calibration", "--preset", "--gnss-quality", "--jpeg-quality",
+        "--overwrite", "--json",
+    ):  # fmt: skip
+        assert option in result.stdout
+    text = " ".join(result.stdout.split())  # argparse wraps lines
+    for kind in ("lidar:", "gnss:", "camera:", "odom:", "imu:", "not imported yet: points"):
+        assert kind in text
+    bad = cli("import", str(NEBULA_BAG), "--out", str(tmp_path / "o.mcap"), "--topics", "sonar=/x")
+    assert bad.returncode == 2 and "unknown kind 'sonar'" in bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1
+    out = tmp_path / "o.mcap"
+    out.write_bytes(b"")
+    exists = cli("import", str(NEBULA_BAG), "--out", str(out))
+    assert exists.returncode == 2 and "--overwrite" in exists.stderr
