@@ -8,7 +8,8 @@ be replayed through the same drivers later. The format (frozen, see docs/archite
   wire format (`TOPIC_ENCODINGS`);
 - `log_time` = host receive time, `publish_time` = the sensor's own UTC time where it has
   one, else the host time; both in ns since the Unix epoch;
-- a metadata record named `treetraits` holding `format_version` ("1"), `software` and
+- a metadata record named `treetraits` holding `format_version` ("1"; "1.1" for a
+  recording that carries the motion channels of `V11_TOPICS`), `software` and
   `calibration` (a JSON object as a string);
 - attachments may hold the field map (`field_map.geojson`).
 
@@ -52,6 +53,10 @@ import treetraits
 from treetraits.errors import SourceError
 
 FORMAT_VERSION = "1"
+# Format 1.1 adds the motion channels (`V11_TOPICS`); a writer marks a recording 1.1 only
+# when asked to, so a recording without them stays readable by format-1 readers.
+FORMAT_VERSION_MOTION = "1.1"
+READ_VERSIONS = (FORMAT_VERSION, FORMAT_VERSION_MOTION)
 METADATA_NAME = "treetraits"
 SOFTWARE = f"treetraits {treetraits.__version__}"
 
@@ -61,6 +66,8 @@ CAMERA_JPEG = "/camera/jpeg"
 GNSS_NMEA = "/gnss/nmea"
 WHEELS_JACKAL = "/wheels/jackal"
 WHEELS_BRIDGE = "/wheels/bridge"
+WHEELS_ODOMETRY = "/wheels/odometry"
+IMU_DATA = "/imu/data"
 
 # Topic -> message_encoding, the only channels a v1 recording is written with.
 TOPIC_ENCODINGS: Mapping[str, str] = {
@@ -70,7 +77,11 @@ TOPIC_ENCODINGS: Mapping[str, str] = {
     GNSS_NMEA: "nmea0183",
     WHEELS_JACKAL: "rosserial",
     WHEELS_BRIDGE: "treetraits-bridge",
+    # Format 1.1 (drivers/motion.py): a robot's odometry and an IMU given as numbers.
+    WHEELS_ODOMETRY: "treetraits-odometry",
+    IMU_DATA: "treetraits-imu",
 }
+V11_TOPICS = frozenset({WHEELS_ODOMETRY, IMU_DATA})
 
 FIELD_MAP_NAME = "field_map.geojson"
 FIELD_MAP_MEDIA_TYPE = "application/geo+json"
@@ -172,7 +183,13 @@ class RecordingWriter:
         overwrite: bool = False,
         max_chunk_age_s: float | None = None,
         fsync_every_s: float | None = None,
+        format_version: str = FORMAT_VERSION,
     ):
+        if format_version not in READ_VERSIONS:
+            raise ValueError(
+                f"format_version must be one of {READ_VERSIONS}, got {format_version!r}"
+            )
+        self.format_version = format_version
         if chunk_size <= 0:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
         for name, value in (("max_chunk_age_s", max_chunk_age_s), ("fsync_every_s", fsync_every_s)):
@@ -207,7 +224,7 @@ class RecordingWriter:
             self._writer.add_metadata(
                 METADATA_NAME,
                 {
-                    "format_version": FORMAT_VERSION,
+                    "format_version": format_version,
                     "software": SOFTWARE,
                     "calibration": calibration_json,
                 },
@@ -227,7 +244,8 @@ class RecordingWriter:
         """Append one message: `data` exactly as received, times in ns since the epoch.
 
         `publish_time` defaults to `log_time` (for sensors without their own clock).
-        Raises ValueError for a topic outside `TOPIC_ENCODINGS`.
+        Raises ValueError for a topic outside `TOPIC_ENCODINGS`, or of format 1.1 in a
+        recording written as format 1.
         """
         if self._closed:
             raise ValueError("write to a closed recording")
@@ -235,6 +253,11 @@ class RecordingWriter:
         if encoding is None:
             raise ValueError(
                 f"unknown topic {topic!r}: a v1 recording carries only {', '.join(TOPIC_ENCODINGS)}"
+            )
+        if topic in V11_TOPICS and self.format_version == FORMAT_VERSION:
+            raise ValueError(
+                f"topic {topic!r} is of format {FORMAT_VERSION_MOTION}: "
+                f"write with format_version={FORMAT_VERSION_MOTION!r}"
             )
         if not isinstance(data, (bytes, bytearray, memoryview)):
             raise TypeError(f"data must be bytes, got {type(data).__name__}")
@@ -526,10 +549,10 @@ class RecordingReader:
     def _parse_metadata(self, record: Metadata) -> RecordingMetadata:
         fields = record.metadata
         version = fields.get("format_version")
-        if version != FORMAT_VERSION:
+        if version not in READ_VERSIONS:
             raise SourceError(
                 f"{self.path}: recording format_version {version!r}, this software "
-                f"({SOFTWARE}) reads format {FORMAT_VERSION!r} only"
+                f"({SOFTWARE}) reads formats {' and '.join(map(repr, READ_VERSIONS))} only"
             )
         try:
             calibration = json.loads(fields.get("calibration") or "{}")

@@ -39,6 +39,7 @@ from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration, load_calibration
 from treetraits.drivers.camera.sources import is_live_uri
 from treetraits.drivers.gnss.times import NmeaClock
+from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.errors import ConfigError, TreetraitsError
 from treetraits.pipeline.fieldmap import load_field_map
 from treetraits.service.config import ServiceConfig, dump_config
@@ -55,7 +56,6 @@ from treetraits.service.workers import (
     Message,
     Worker,
     is_video_file,
-    lidar_publish_time,
 )
 
 log = logging.getLogger("treetraits.service")

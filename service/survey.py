@@ -36,6 +36,7 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
+from treetraits.drivers.motion import OdometryIntegrator, decode_imu
 from treetraits.drivers.records import Fix, Frame, Pose, Scan, WheelSample
 from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.drivers.velodyne.telemetry import decode_telemetry
@@ -86,6 +87,7 @@ class SurveyStats:
     scans_deskewed: int = 0
     unknown_topics: int = 0
     telemetry_malformed: int = 0
+    motion_malformed: int = 0  # format 1.1 odometry or IMU messages of the wrong size
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -111,6 +113,7 @@ class SurveyProcessor:
         self._epochs = EpochAssembler()
         self._mcu = JackalProtocol()
         self._bridge = BridgeDecoder()
+        self._odometry = OdometryIntegrator(calibration.wheels.track)
         self._frames: deque[Frame] = deque(maxlen=FRAME_BUFFER)
         self._pending: deque[Scan] = deque()
         self._latest = 0  # newest log_time seen
@@ -143,18 +146,26 @@ class SurveyProcessor:
                     self._add_wheels(record)
                 elif isinstance(record, JackalImu):
                     # On t_host like the wheels (the header stamp is the MCU's clock).
-                    self.stats.imu_samples += 1
-                    self._imu_seen = log_time
-                    self.attitude.add_imu(
+                    self._add_imu(
                         record.t_host, record.angular_velocity, record.linear_acceleration
                     )
-                    if (rate := self.attitude.yaw_rate) is not None:
-                        self.localizer.add_yaw_rate(record.t_host, rate)
             self._mcu.take_outgoing()  # a recording cannot answer the MCU
         elif topic == rec.WHEELS_BRIDGE:
             for record in self._bridge.push(data, log_time):
                 if isinstance(record, WheelSample):  # ticks: the localizer converts them
                     self._add_wheels(record)
+        elif topic == rec.WHEELS_ODOMETRY:  # format 1.1: a robot's odometry as numbers
+            try:
+                self._add_wheels(self._odometry.push(data, log_time))
+            except ParseError:
+                self.stats.motion_malformed += 1
+        elif topic == rec.IMU_DATA:  # format 1.1: an IMU as numbers, on t_host like the MCU's
+            try:
+                sample = decode_imu(data, log_time)
+            except ParseError:
+                self.stats.motion_malformed += 1
+            else:
+                self._add_imu(sample.t_host, sample.angular_velocity, sample.linear_acceleration)
         elif topic == rec.LIDAR_TELEMETRY:
             try:
                 self.lidar_clock.add_telemetry(decode_telemetry(data, log_time))
@@ -177,6 +188,13 @@ class SurveyProcessor:
         scan = self.lidar_clock.place(scan)
         self.localizer.host_minus_utc = self.lidar_clock.host_minus_utc(scan.t_host)
         self._pending.append(scan)
+
+    def _add_imu(self, t_host: int, gyro, accel) -> None:
+        self.stats.imu_samples += 1
+        self._imu_seen = t_host
+        self.attitude.add_imu(t_host, gyro, accel)
+        if (rate := self.attitude.yaw_rate) is not None:
+            self.localizer.add_yaw_rate(t_host, rate)
 
     def _add_wheels(self, sample: WheelSample) -> None:
         self.stats.wheel_samples += 1

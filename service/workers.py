@@ -24,13 +24,9 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from treetraits.drivers import recording as rec
 from treetraits.drivers.camera.replay import VideoFileSource
 from treetraits.drivers.camera.settings import CameraSettings
-from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE, POSITION_PACKET_SIZE
-from treetraits.drivers.velodyne.packet import resolve_hour
 from treetraits.drivers.velodyne.sources import UdpSource
 from treetraits.errors import SourceError
 from treetraits.service.config import CameraConfig, GnssConfig, LidarConfig, WheelsConfig
@@ -107,19 +103,6 @@ def name_os_thread(name: str) -> None:
     with contextlib.suppress(Exception):
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
-
-
-def lidar_publish_time(payload: bytes, t_host: int) -> int:
-    """The recording's `publish_time` of a LiDAR payload: its microseconds past the hour
-    (ToH) with the hour from `t_host` (docs/architecture.md, recording format v1)."""
-    if len(payload) == DATA_PACKET_SIZE:
-        offset = 1200
-    elif len(payload) == POSITION_PACKET_SIZE:
-        offset = 198
-    else:
-        return t_host
-    toh_us = int.from_bytes(payload[offset : offset + 4], "little")
-    return int(resolve_hour(np.array([toh_us]), np.array([t_host]))[0])
 
 
 class Worker(abc.ABC):

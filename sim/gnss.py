@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyproj
 
-from treetraits.drivers.gnss.sentences import checksum
+from treetraits.drivers.gnss.compose import lat_field, lon_field, sentence
 
 QUALITY_SIGMA_M = {4: 0.02, 5: 0.25, 2: 0.6, 1: 2.0}  # RTK fixed, float, DGPS, autonomous
 
@@ -35,25 +35,6 @@ class GnssSettings:
     satellites: int = 18
     hdop: float = 0.7
     geoid_separation_m: float = -32.5  # California-like
-
-
-def sentence(body: str) -> bytes:
-    """`$body*hh\\r\\n` with the XOR checksum."""
-    return f"${body}*{checksum(body.encode('ascii')):02X}\r\n".encode("ascii")
-
-
-def lat_field(lat: float) -> tuple[str, str]:
-    hemisphere = "N" if lat >= 0 else "S"
-    lat = abs(lat)
-    degrees = int(lat)
-    return f"{degrees:02d}{(lat - degrees) * 60:011.8f}", hemisphere
-
-
-def lon_field(lon: float) -> tuple[str, str]:
-    hemisphere = "E" if lon >= 0 else "W"
-    lon = abs(lon)
-    degrees = int(lon)
-    return f"{degrees:03d}{(lon - degrees) * 60:011.8f}", hemisphere
 
 
 def epoch_sentences(

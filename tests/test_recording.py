@@ -450,3 +450,27 @@ def test_corrupt_chunk_stops_at_the_last_good_one(long_recording, tmp_path):
     assert messages == expected[: len(messages)]
     assert middle * (PER_CHUNK - 1) <= len(messages) <= (middle + 1) * PER_CHUNK
     assert reader.truncated is True
+
+
+def test_format_1_1_carries_the_motion_channels_and_format_1_refuses_them(tmp_path):
+    from treetraits.drivers.motion import decode_imu, encode_imu, encode_odometry
+
+    odometry, imu = encode_odometry(0.5, -0.1), encode_imu((0.0, 0.01, -0.1), (0.2, 0.0, 9.81))
+    with (
+        rec.RecordingWriter(tmp_path / "v1.mcap") as writer,
+        pytest.raises(ValueError, match=r"format 1\.1"),
+    ):
+        writer.write(rec.WHEELS_ODOMETRY, odometry, T0)
+    assert rec.read_recording(tmp_path / "v1.mcap").metadata.format_version == "1"
+
+    with rec.RecordingWriter(tmp_path / "v11.mcap", format_version="1.1") as writer:
+        writer.write(rec.WHEELS_ODOMETRY, odometry, T0, T0 - 5)
+        writer.write(rec.IMU_DATA, imu, T0 + 1)
+    reader = rec.read_recording(tmp_path / "v11.mcap")
+    assert reader.metadata.format_version == "1.1"
+    messages = list(reader)
+    assert [(m.topic, m.data, m.publish_time) for m in messages] == [
+        (rec.WHEELS_ODOMETRY, odometry, T0 - 5),
+        (rec.IMU_DATA, imu, T0 + 1),
+    ]
+    assert decode_imu(messages[1].data, T0).linear_acceleration == (0.2, 0.0, 9.81)

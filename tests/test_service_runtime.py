@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import pytest
 
 from treetraits.drivers import recording as rec
+from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.service.config import GnssConfig, LidarConfig, ServiceConfig
 from treetraits.service.health import SensorState, assess, sensor_problem, status_line
 from treetraits.service.notify import Notifier, watchdog_period_s
@@ -23,7 +24,6 @@ from treetraits.service.workers import (
     GnssWorker,
     LidarWorker,
     Message,
-    lidar_publish_time,
 )
 
 HOUR_NS = 3600 * 10**9

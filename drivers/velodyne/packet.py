@@ -108,6 +108,19 @@ def resolve_hour(toh_us: np.ndarray, t_ref_ns: np.ndarray) -> np.ndarray:
     return np.where(t_ref_ns - t > half_hour, t + m.HOUR_NS, t)
 
 
+def lidar_publish_time(payload: bytes, t_host: int) -> int:
+    """The recording's `publish_time` of a LiDAR payload: its microseconds past the hour
+    (ToH) with the hour from `t_host` (docs/architecture.md, recording format v1)."""
+    if len(payload) == m.DATA_PACKET_SIZE:
+        offset = 1200
+    elif len(payload) == m.POSITION_PACKET_SIZE:
+        offset = 198
+    else:
+        return t_host
+    toh_us = int.from_bytes(payload[offset : offset + 4], "little")
+    return int(resolve_hour(np.array([toh_us]), np.array([t_host]))[0])
+
+
 def _rotation_rate(firing_azimuth: np.ndarray) -> np.ndarray:
     """Per packet: rotation in centidegrees per firing block, from the first to the last
     firing block of the packet (unwrapped across 0). One rate per packet averages out

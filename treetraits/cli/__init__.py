@@ -17,6 +17,7 @@ from treetraits.cli import (
     doctor,
     eval,
     fuse,
+    imports,
     lidar,
     nmea,
     play,
@@ -45,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     fuse.register(commands)
     sim.register(commands)
     replay.register(commands)
+    imports.register(commands)
     run.register(commands)
     record.register(commands)
     config.register(commands)

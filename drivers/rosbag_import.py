@@ -1,0 +1,541 @@
+"""ROS 1 and ROS 2 bags to a recording v1 (`treetraits import`), without ROS.
+
+Each selected topic becomes the bytes a treetraits sensor driver would have received, on
+the recording's channels (docs/import.md):
+
+- `velodyne_msgs/VelodyneScan`: each packet's 1206-byte payload on `/lidar/packets`,
+  `log_time` = the packet's own `stamp` (the ROS driver's receive time);
+- `nmea_msgs/Sentence`: the sentence + CRLF on `/gnss/nmea`;
+- `sensor_msgs/NavSatFix`: GGA, RMC and GST sentences made from the numbers
+  (`drivers/gnss/compose.py`), at the header stamp as UTC;
+- `sensor_msgs/Image` (rgb8, bgr8, mono8) JPEG-encoded, `sensor_msgs/CompressedImage`
+  (JPEG as is, others re-encoded) on `/camera/jpeg`;
+- `nav_msgs/Odometry` (its twist) on `/wheels/odometry` and `sensor_msgs/Imu` (rates and
+  accelerations) on `/imu/data`: format 1.1 (`drivers/motion.py`), so a recording holding
+  them is marked 1.1.
+
+Other messages keep the bag's receive time as `log_time`; `publish_time` follows the
+format's rules (LiDAR: the packet's ToH; GNSS: the epoch's UTC; camera: the header stamp).
+The recording is written in `log_time` order, as the live recorder writes it. Several bags
+(a data set split by modality, ROS 1 and ROS 2 mixed) are merged by time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import heapq
+import math
+import os
+import struct
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from treetraits.drivers import recording as rec
+from treetraits.drivers.gnss.compose import fix_sentences
+from treetraits.drivers.gnss.times import NmeaClock
+from treetraits.drivers.motion import encode_imu, encode_odometry
+from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE
+from treetraits.drivers.velodyne.packet import resolve_hour
+from treetraits.errors import ConfigError, SourceError
+
+# Kinds a topic can be imported as (`--topics KIND=TOPIC`), and the ROS types of each.
+KIND_TYPES: Mapping[str, tuple[str, ...]] = {
+    "lidar": ("velodyne_msgs/msg/VelodyneScan",),
+    "gnss": ("nmea_msgs/msg/Sentence", "sensor_msgs/msg/NavSatFix"),
+    "camera": ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"),
+    # Recording format 1.1 (drivers/motion.py).
+    "odom": ("nav_msgs/msg/Odometry",),
+    "imu": ("sensor_msgs/msg/Imu",),
+}
+MOTION_KINDS = frozenset({"odom", "imu"})
+# Types a survey needs that this importer cannot convert yet: listed in the summary.
+NOT_IMPORTED_YET: Mapping[str, str] = {
+    "sensor_msgs/msg/PointCloud2": "points",
+}
+KINDS = (*KIND_TYPES, *NOT_IMPORTED_YET.values())
+
+# The CitrusFarm data set's topics (Teng et al., ISVC 2023; the paper's lab, a Jackal).
+CITRUSFARM_TOPICS: Mapping[str, str] = {
+    "points": "/velodyne_points",
+    "camera": "/mapir_cam/image_raw",
+    "gnss": "/piksi/navsatfix_best_fix",
+    "odom": "/jackal_velocity_controller/odom",
+    "imu": "/microstrain/imu/data",
+}
+# /piksi/navsatfix_best_fix carries RTK fixed solutions.
+CITRUSFARM_GNSS_QUALITY = 4
+
+# A NavSatFix with STATUS_GBAS_FIX (ground-based augmentation: RTK) is RTK fixed when its
+# horizontal sigma is at most this, else RTK float (NavSatFix cannot say which).
+RTK_FIXED_MAX_SIGMA_M = 0.05
+# NavSatStatus.status -> GGA quality (GBAS: see above; -1 NO_FIX is quality 0).
+_STATUS_QUALITY = {0: 1, 1: 2}
+_GBAS_FIX = 2
+_COVARIANCE_UNKNOWN = 0
+
+# The recording is written in log_time order: a message is held until the bag's clock is
+# this far past it. A VelodyneScan holds 0.1 s of packets stamped before its receive time.
+REORDER_WINDOW_NS = 2_000_000_000
+JPEG_QUALITY = 90
+
+# Message definitions that the default type stores lack (ROS 2 bags before rosbag2 v8
+# carry none). From ros-drivers/velodyne and ros-drivers/nmea_msgs (BSD).
+_EXTRA_TYPES = {
+    "velodyne_msgs/msg/VelodynePacket": "builtin_interfaces/Time stamp\nuint8[1206] data\n",
+    "velodyne_msgs/msg/VelodyneScan": (
+        "std_msgs/Header header\nvelodyne_msgs/VelodynePacket[] packets\n"
+    ),
+    "nmea_msgs/msg/Sentence": "std_msgs/Header header\nstring sentence\n",
+}
+
+
+@dataclass
+class TopicReport:
+    """One topic of the bags (or of `--topics` that the bags lack)."""
+
+    topic: str
+    msgtype: str | None  # None: asked for, not in the bags
+    messages: int  # in the bags
+    kind: str | None = None
+    status: str = "not selected"  # imported, not imported yet, unknown type, missing, ...
+    written: int = 0  # recording messages made from it
+    skipped: int = 0  # messages that could not be converted
+    skip_reasons: dict[str, int] = field(default_factory=dict)
+
+    def skip(self, reason: str) -> None:
+        self.skipped += 1
+        self.skip_reasons[reason] = self.skip_reasons.get(reason, 0) + 1
+
+
+@dataclass
+class ImportReport:
+    """What `import_bags` read and wrote."""
+
+    bags: list[str]
+    output: str
+    topics: list[TopicReport]
+    channels: dict[str, int] = field(default_factory=dict)  # recording topic -> messages
+    first_log_time: int | None = None
+    last_log_time: int | None = None
+    out_of_order: int = 0  # written after a later log_time (beyond REORDER_WINDOW_NS)
+    format_version: str = rec.FORMAT_VERSION  # 1.1 when odometry or IMU was imported
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "bags": self.bags,
+            "output": self.output,
+            "channels": self.channels,
+            "first_log_time": self.first_log_time,
+            "last_log_time": self.last_log_time,
+            "out_of_order": self.out_of_order,
+            "format_version": self.format_version,
+            "topics": [vars(t) for t in self.topics],
+            "imported": [t.topic for t in self.topics if t.status == "imported"],
+            "not_imported_yet": [t.topic for t in self.topics if t.status == "not imported yet"],
+            "missing": [t.topic for t in self.topics if t.status == "missing"],
+        }
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    # kind -> topic; None: every topic of a known type (the first of each kind).
+    topics: Mapping[str, str] | None = None
+    # GGA quality for every NavSatFix with a fix; None: from its status and covariance.
+    gnss_quality: int | None = None
+    calibration: Mapping[str, Any] | None = None
+    jpeg_quality: int = JPEG_QUALITY
+    overwrite: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class _Out:
+    """One recording message made from a bag message."""
+
+    topic: str
+    data: bytes
+    log_time: int
+    publish_time: int
+
+
+def parse_topics(items: list[str]) -> dict[str, str]:
+    """`KIND=TOPIC` strings to a mapping; ConfigError for a bad item or an unknown kind."""
+    topics: dict[str, str] = {}
+    for item in items:
+        kind, sep, topic = item.partition("=")
+        if not sep or not topic:
+            raise ConfigError(f"--topics takes KIND=TOPIC, got {item!r}")
+        if kind not in KINDS:
+            raise ConfigError(f"--topics: unknown kind {kind!r}; kinds: {', '.join(KINDS)}")
+        topics[kind] = topic if topic.startswith("/") else f"/{topic}"
+    return topics
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def velodyne_scan(msg: Any, report: TopicReport) -> list[_Out]:
+    """A VelodyneScan's packets, byte for byte, each at its own stamp; publish_time is the
+    packet's ToH on the hour of its stamp (`lidar_publish_time`, one NumPy call a scan)."""
+    payloads, stamps = [], []
+    for packet in msg.packets:
+        data = np.asarray(packet.data, dtype=np.uint8).tobytes()
+        if len(data) != DATA_PACKET_SIZE:
+            report.skip(f"packet of {len(data)} bytes")
+            continue
+        payloads.append(data)
+        stamps.append(_stamp_ns(packet.stamp))
+    if not payloads:
+        return []
+    toh_us = [int.from_bytes(data[1200:1204], "little") for data in payloads]
+    published = resolve_hour(np.array(toh_us), np.array(stamps, dtype=np.int64)).tolist()
+    return [
+        _Out(rec.LIDAR_PACKETS, data, t, p)
+        for data, t, p in zip(payloads, stamps, published, strict=True)
+    ]
+
+
+def nmea_sentence(msg: Any, log_time: int, clock: NmeaClock, report: TopicReport) -> list[_Out]:
+    """An nmea_msgs/Sentence as the receiver sent it: the text and CRLF (the ROS driver
+    strips the line end)."""
+    text = msg.sentence.rstrip("\r\n")
+    try:
+        data = text.encode("ascii") + b"\r\n"
+    except UnicodeEncodeError:
+        report.skip("not ASCII")
+        return []
+    return [_Out(rec.GNSS_NMEA, data, log_time, clock.stamp(data, log_time))]
+
+
+def navsatfix_quality(msg: Any, forced: int | None) -> int:
+    """GGA quality of a NavSatFix (docs/import.md): NO_FIX 0; `forced` for any fix when
+    given; else FIX 1, SBAS 2, GBAS 4 (RTK fixed) when the horizontal sigma is at most
+    RTK_FIXED_MAX_SIGMA_M, else 5 (RTK float, also when the covariance is unknown)."""
+    status = int(msg.status.status)
+    if status < 0:
+        return 0
+    if forced is not None:
+        return forced
+    if status != _GBAS_FIX:
+        return _STATUS_QUALITY.get(status, 1)
+    sigma = _horizontal_sigma(msg)
+    return 4 if sigma is not None and sigma <= RTK_FIXED_MAX_SIGMA_M else 5
+
+
+def _sigmas(msg: Any) -> tuple[float, float, float] | None:
+    """(east, north, up) 1-sigma from the ENU covariance's diagonal, None when unknown."""
+    if int(msg.position_covariance_type) == _COVARIANCE_UNKNOWN:
+        return None
+    diagonal = [float(msg.position_covariance[i]) for i in (0, 4, 8)]
+    if not all(math.isfinite(v) and v >= 0 for v in diagonal):
+        return None
+    east, north, up = (math.sqrt(v) for v in diagonal)
+    return east, north, up
+
+
+def _horizontal_sigma(msg: Any) -> float | None:
+    sigmas = _sigmas(msg)
+    return None if sigmas is None else max(sigmas[0], sigmas[1])
+
+
+def navsatfix(msg: Any, log_time: int, forced_quality: int | None) -> list[_Out]:
+    """A NavSatFix as the sentences of one epoch at its header stamp (as UTC). NavSatFix
+    altitude is above the ellipsoid: GGA gets it with a geoid separation of 0, so that
+    altitude + separation is the same ellipsoidal height."""
+    utc = _stamp_ns(msg.header.stamp)
+    sigmas = _sigmas(msg) or (None, None, None)
+    sentences = fix_sentences(
+        utc,
+        float(msg.latitude),
+        float(msg.longitude),
+        float(msg.altitude),
+        navsatfix_quality(msg, forced_quality),
+        std_east_m=sigmas[0],
+        std_north_m=sigmas[1],
+        std_up_m=sigmas[2],
+    )
+    # publish_time: the epoch's UTC, as the sentences carry it (rounded to the ms).
+    utc = round(utc / 1e6) * 1_000_000
+    return [_Out(rec.GNSS_NMEA, s, log_time, utc) for s in sentences]
+
+
+def image(msg: Any, log_time: int, jpeg_quality: int, report: TopicReport) -> list[_Out]:
+    """A sensor_msgs/Image (rgb8, bgr8, mono8) as a JPEG; publish_time = header stamp."""
+    import cv2
+
+    encoding = str(msg.encoding).lower()
+    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1}.get(encoding)
+    if channels is None:
+        report.skip(f"encoding {msg.encoding}")
+        return []
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    raw = np.asarray(msg.data, dtype=np.uint8)
+    if step < width * channels or raw.size < height * step:
+        report.skip("data shorter than height x step")
+        return []
+    pixels = raw[: height * step].reshape(height, step)[:, : width * channels]
+    pixels = pixels.reshape(height, width, channels)
+    if encoding == "rgb8":  # cv2 writes BGR: keep each band where the camera put it
+        pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
+    ok, jpeg = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    if not ok:
+        report.skip("JPEG encoding failed")
+        return []
+    return [_Out(rec.CAMERA_JPEG, jpeg.tobytes(), log_time, _stamp_ns(msg.header.stamp))]
+
+
+def compressed_image(msg: Any, log_time: int, jpeg_quality: int, report: TopicReport) -> list:
+    """A CompressedImage: JPEG bytes as they are, another format decoded and re-encoded."""
+    import cv2
+
+    data = np.asarray(msg.data, dtype=np.uint8).tobytes()
+    if not data.startswith(b"\xff\xd8"):
+        pixels = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        if pixels is None:
+            report.skip(f"undecodable {msg.format or 'image'}")
+            return []
+        ok, jpeg = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        if not ok:
+            report.skip("JPEG encoding failed")
+            return []
+        data = jpeg.tobytes()
+    return [_Out(rec.CAMERA_JPEG, data, log_time, _stamp_ns(msg.header.stamp))]
+
+
+def odometry(msg: Any, log_time: int) -> list[_Out]:
+    """A nav_msgs/Odometry's twist (in its child frame, base_link): forward speed and yaw
+    rate; publish_time = header stamp."""
+    twist = msg.twist.twist
+    data = encode_odometry(float(twist.linear.x), float(twist.angular.z))
+    return [_Out(rec.WHEELS_ODOMETRY, data, log_time, _stamp_ns(msg.header.stamp))]
+
+
+def imu(msg: Any, log_time: int) -> list[_Out]:
+    """A sensor_msgs/Imu's angular velocity and linear acceleration (its orientation is not
+    kept: the attitude filter makes its own); publish_time = header stamp."""
+    w, a = msg.angular_velocity, msg.linear_acceleration
+    data = encode_imu((w.x, w.y, w.z), (a.x, a.y, a.z))
+    return [_Out(rec.IMU_DATA, data, log_time, _stamp_ns(msg.header.stamp))]
+
+
+def default_typestore() -> Any:
+    """The type store for bags that carry no message definitions: ROS 2 Humble's types
+    plus velodyne_msgs and nmea_msgs."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types: dict[str, Any] = {}
+    for name, text in _EXTRA_TYPES.items():
+        types.update(get_types_from_msg(text, name))
+    store.register(types)
+    return store
+
+
+def _bag_errors() -> tuple[type[BaseException], ...]:
+    """What rosbags and its storage back ends raise on a damaged or foreign file."""
+    import apsw
+    from rosbags.highlevel import AnyReaderError
+    from rosbags.rosbag1 import ReaderError as Reader1Error
+    from rosbags.rosbag2 import ReaderError as Reader2Error
+    from rosbags.serde import SerdeError
+    from rosbags.typesys import TypesysError
+
+    return (
+        AnyReaderError,
+        Reader1Error,
+        Reader2Error,
+        SerdeError,
+        TypesysError,
+        apsw.Error,
+        OSError,
+        ValueError,
+        KeyError,
+        IndexError,
+        AssertionError,
+        struct.error,
+        EOFError,
+    )
+
+
+def _open_bag(path: Path, store: Any, errors: tuple) -> Any:
+    from rosbags.highlevel import AnyReader
+
+    if not path.exists():
+        raise SourceError(f"{path}: no such bag (a ROS 1 .bag file or a ROS 2 bag directory)")
+    try:
+        reader = AnyReader([path], default_typestore=store)
+        reader.open()
+    except errors as error:
+        raise SourceError(f"{path}: not a readable ROS bag ({_reason(error)})") from None
+    return reader
+
+
+def _reason(error: BaseException) -> str:
+    text = " ".join(str(a) for a in error.args) or type(error).__name__
+    return text.splitlines()[0][:200] if text else type(error).__name__
+
+
+def _select(readers: list[Any], wanted: Mapping[str, str] | None) -> dict[str, TopicReport]:
+    """Every topic of the bags with its kind and status; kinds chosen by `wanted` or by
+    type (the first topic of each kind)."""
+    reports: dict[str, TopicReport] = {}
+    for reader in readers:
+        for connection in reader.connections:
+            report = reports.get(connection.topic)
+            if report is None:
+                report = reports[connection.topic] = TopicReport(
+                    connection.topic, connection.msgtype, 0
+                )
+            report.messages += connection.msgcount
+    kind_of = {t: k for k, types in KIND_TYPES.items() for t in types}
+    taken: dict[str, str] = {}
+    by_topic = {topic: kind for kind, topic in (wanted or {}).items()}
+    for report in sorted(reports.values(), key=lambda r: r.topic):  # first by name wins
+        kind = kind_of.get(report.msgtype or "")
+        if report.msgtype in NOT_IMPORTED_YET:
+            report.kind = NOT_IMPORTED_YET[report.msgtype]
+            report.status = "not imported yet"
+        elif wanted is not None and report.topic not in by_topic:
+            report.status = "not selected" if kind else "unknown type"
+        elif kind is None:
+            report.status = "unknown type"
+        elif wanted is not None and by_topic[report.topic] != kind:
+            report.status = f"type {report.msgtype} is not a {by_topic[report.topic]} type"
+        elif kind in taken:
+            report.status = f"another {kind} topic ({taken[kind]}) is imported; use --topics"
+        else:
+            report.kind, report.status = kind, "imported"
+            taken[kind] = report.topic
+    for kind, topic in (wanted or {}).items():
+        if topic not in reports:
+            reports[topic] = TopicReport(topic, None, 0, kind, "missing")
+    return reports
+
+
+def _bag_messages(reader: Any, connections: list, index: int) -> Iterator[tuple]:
+    for connection, timestamp, raw in reader.messages(connections=connections):
+        yield timestamp, index, connection, raw
+
+
+def import_bags(
+    bags: list[Path],
+    output: Path,
+    options: ImportOptions = ImportOptions(),
+    progress: Callable[[int, int], None] | None = None,
+) -> ImportReport:
+    """Convert the bags (merged by time) into one recording v1 at `output`.
+
+    `progress(done, total)` is called after each bag message read (of those imported).
+    Raises SourceError for a missing or unreadable bag (nothing is left at `output`),
+    ConfigError for an output that exists (unless `options.overwrite`).
+    """
+    if not bags:
+        raise ConfigError("no bag given")
+    if output.exists() and not options.overwrite:
+        raise ConfigError(f"{output}: exists; choose another --out or pass --overwrite")
+    errors = _bag_errors()
+    store = default_typestore()
+    readers: list[Any] = []
+    with contextlib.ExitStack() as stack:
+        for path in bags:
+            reader = _open_bag(Path(path), store, errors)
+            stack.callback(reader.close)
+            readers.append(reader)
+        reports = _select(readers, options.topics)
+        report = ImportReport([os.fspath(b) for b in bags], os.fspath(output), [])
+        report.topics = sorted(reports.values(), key=lambda r: (r.status != "imported", r.topic))
+        try:
+            _convert(readers, bags, reports, output, options, report, errors, progress)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                output.unlink()
+            raise
+    return report
+
+
+def _convert(
+    readers: list[Any],
+    bags: list[Path],
+    reports: Mapping[str, TopicReport],
+    output: Path,
+    options: ImportOptions,
+    report: ImportReport,
+    errors: tuple,
+    progress: Callable[[int, int], None] | None,
+) -> None:
+    streams = []
+    total = sum(r.messages for r in reports.values() if r.status == "imported")
+    for index, reader in enumerate(readers):
+        chosen = [c for c in reader.connections if reports[c.topic].status == "imported"]
+        if chosen:
+            streams.append(_bag_messages(reader, chosen, index))
+    clock = NmeaClock()
+    held: list[tuple[int, int, _Out]] = []  # (log_time, order, message): the reorder heap
+    order = 0
+    last_written = -1
+
+    def write(writer: rec.RecordingWriter, until: int) -> None:
+        nonlocal last_written
+        while held and held[0][0] <= until:
+            log_time, _, out = heapq.heappop(held)
+            if log_time < last_written:
+                report.out_of_order += 1
+            last_written = max(last_written, log_time)
+            writer.write(out.topic, out.data, out.log_time, out.publish_time)
+            report.channels[out.topic] = report.channels.get(out.topic, 0) + 1
+            if report.first_log_time is None:
+                report.first_log_time = log_time
+            report.last_log_time = max(report.last_log_time or 0, log_time)
+
+    merged = heapq.merge(*streams, key=lambda item: (item[0], item[1]))
+    motion = any(r.kind in MOTION_KINDS and r.status == "imported" for r in reports.values())
+    with rec.RecordingWriter(
+        output,
+        calibration=options.calibration,
+        overwrite=options.overwrite,
+        format_version=rec.FORMAT_VERSION_MOTION if motion else rec.FORMAT_VERSION,
+    ) as writer:
+        report.format_version = writer.format_version
+        index = 0
+        try:
+            for done, (timestamp, index, connection, raw) in enumerate(merged, 1):
+                topic = reports[connection.topic]
+                message = readers[index].deserialize(raw, connection.msgtype)
+                for out in _messages(topic, message, timestamp, clock, options):
+                    heapq.heappush(held, (out.log_time, order, out))
+                    order += 1
+                    topic.written += 1
+                write(writer, timestamp - REORDER_WINDOW_NS)
+                if progress is not None:
+                    progress(done, total)
+        except errors as error:
+            raise SourceError(
+                f"{bags[index]}: damaged ROS bag, stopped reading ({_reason(error)}); "
+                "no recording written"
+            ) from None
+        write(writer, 1 << 63)
+
+
+def _messages(
+    topic: TopicReport, message: Any, log_time: int, clock: NmeaClock, options: ImportOptions
+) -> list[_Out]:
+    msgtype = topic.msgtype
+    if msgtype == "velodyne_msgs/msg/VelodyneScan":
+        return velodyne_scan(message, topic)
+    if msgtype == "nmea_msgs/msg/Sentence":
+        return nmea_sentence(message, log_time, clock, topic)
+    if msgtype == "sensor_msgs/msg/NavSatFix":
+        return navsatfix(message, log_time, options.gnss_quality)
+    if msgtype == "sensor_msgs/msg/Image":
+        return image(message, log_time, options.jpeg_quality, topic)
+    if msgtype == "sensor_msgs/msg/CompressedImage":
+        return compressed_image(message, log_time, options.jpeg_quality, topic)
+    if msgtype == "nav_msgs/msg/Odometry":
+        return odometry(message, log_time)
+    if msgtype == "sensor_msgs/msg/Imu":
+        return imu(message, log_time)
+    raise AssertionError(f"no conversion for {msgtype}")  # _select imports only the above
