@@ -14,6 +14,10 @@ read and its LiDAR packets batched into scans: the part no pipeline change can r
 interleaved so that the machine's load hits both alike; medians. There is no peer that
 replays a survey end to end; `bench/pipeline.py` compares the per-scan pipeline with RPH.
 
+Frames: the recording's first 60 camera frames decoded as the mapper does (half size,
+`fusion.MAPPER_REDUCTION`) and at full size, interleaved, per-frame medians: the one step
+of the replay with a peer run side by side.
+
 Start: the wall time of `python -m treetraits --help` in a fresh process, `--starts`
 times, median; with the bytecode cache (`PYTHONPYCACHEPREFIX` in the cache directory,
 written by a first start: what an installed package or any normal Python run has) and,
@@ -91,6 +95,28 @@ def input_once(recording: Path) -> tuple[float, float]:
     return time.perf_counter() - start, (last - first) / 1e9
 
 
+def decode_ms(recording: Path, frames: int = 60, rounds: int = 5) -> dict[int, float]:
+    """Median ms to decode one camera frame, at full size and at the mapper's reduction."""
+    from treetraits.drivers import recording as rec
+    from treetraits.drivers.records import Frame
+    from treetraits.pipeline.fusion import MAPPER_REDUCTION
+
+    jpegs = []
+    with rec.read_recording(recording, topics=[rec.CAMERA_JPEG]) as reader:
+        for message in reader:
+            jpegs.append(Frame(message.data, message.log_time, message.publish_time))
+            if len(jpegs) == frames:
+                break
+    times: dict[int, list[float]] = {1: [], MAPPER_REDUCTION: []}
+    for _ in range(rounds):
+        for frame in jpegs:
+            for reduction, values in times.items():
+                start = time.perf_counter()
+                frame.decode(reduction)
+                values.append((time.perf_counter() - start) * 1e3)
+    return {reduction: statistics.median(values) for reduction, values in times.items()}
+
+
 def startup_times(starts: int, env: dict[str, str]) -> list[float]:
     """Wall seconds of `python -m treetraits --help`, each in a fresh process."""
     command = [sys.executable, "-m", "treetraits", "--help"]
@@ -134,6 +160,8 @@ def main() -> None:
         seconds, drive_s = input_once(recording)
         inputs.append(seconds)
     replay_s, input_s = statistics.median(replays), statistics.median(inputs)
+    decode = decode_ms(recording)
+    full, (reduction, reduced) = decode[1], max(decode.items())
 
     print(f"recording: {recording} ({recording.stat().st_size / 1e6:.1f} MB)")
     print(
@@ -148,6 +176,10 @@ def main() -> None:
     print(
         f"  input alone (read + batch scans)  {input_s:7.2f} s  {drive_s / input_s:6.1f}x real "
         f"time  ({input_s / replay_s:.0%} of the replay)"
+    )
+    print(
+        f"  a 720p frame decoded: full size {full:.2f} ms, 1/{reduction} size (the mapper's) "
+        f"{reduced:.2f} ms: {full / reduced:.2f}x faster"
     )
     print(f"  `treetraits --help`, bytecode cached  {start_cached:.3f} s ({args.starts} starts)")
     print(f"  `treetraits --help`, no bytecode      {start_uncached:.3f} s ({args.starts} starts)")
