@@ -142,13 +142,25 @@ class Frame:
     t_capture: int
     sequence: int = 0
 
-    def decode(self) -> np.ndarray:
-        """The image as an OpenCV BGR uint8 array. Raises ParseError for a corrupt JPEG."""
+    def decode(self, reduction: int = 1) -> np.ndarray:
+        """The image as an OpenCV BGR uint8 array. Raises ParseError for a corrupt JPEG.
+
+        `reduction` 2, 4 or 8: decoded at 1/2, 1/4 or 1/8 of the size (ceil(W / r) x
+        ceil(H / r)), each pixel about the mean of the r x r pixels it stands for; the JPEG
+        decoder scales in its inverse DCT, so this is cheaper than decoding and resizing."""
         import cv2
 
         from treetraits.errors import ParseError
 
-        image = cv2.imdecode(np.frombuffer(self.jpeg, dtype=np.uint8), cv2.IMREAD_COLOR)
+        flags = {
+            1: cv2.IMREAD_COLOR,
+            2: cv2.IMREAD_REDUCED_COLOR_2,
+            4: cv2.IMREAD_REDUCED_COLOR_4,
+            8: cv2.IMREAD_REDUCED_COLOR_8,
+        }
+        if reduction not in flags:
+            raise ValueError(f"reduction must be 1, 2, 4 or 8, got {reduction}")
+        image = cv2.imdecode(np.frombuffer(self.jpeg, dtype=np.uint8), flags[reduction])
         if image is None:
             raise ParseError(
                 f"frame {self.sequence}: not a decodable JPEG ({len(self.jpeg)} bytes)"

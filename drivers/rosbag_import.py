@@ -38,36 +38,14 @@ from treetraits.drivers import recording as rec
 from treetraits.drivers.gnss.compose import fix_sentences
 from treetraits.drivers.gnss.times import NmeaClock
 from treetraits.drivers.motion import encode_imu, encode_odometry
+from treetraits.drivers.rosbag_topics import (
+    KIND_TYPES,
+    MOTION_KINDS,
+    NOT_IMPORTED_YET,
+)
 from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE
 from treetraits.drivers.velodyne.packet import resolve_hour
 from treetraits.errors import ConfigError, SourceError
-
-# Kinds a topic can be imported as (`--topics KIND=TOPIC`), and the ROS types of each.
-KIND_TYPES: Mapping[str, tuple[str, ...]] = {
-    "lidar": ("velodyne_msgs/msg/VelodyneScan",),
-    "gnss": ("nmea_msgs/msg/Sentence", "sensor_msgs/msg/NavSatFix"),
-    "camera": ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"),
-    # Recording format 1.1 (drivers/motion.py).
-    "odom": ("nav_msgs/msg/Odometry",),
-    "imu": ("sensor_msgs/msg/Imu",),
-}
-MOTION_KINDS = frozenset({"odom", "imu"})
-# Types a survey needs that this importer cannot convert yet: listed in the summary.
-NOT_IMPORTED_YET: Mapping[str, str] = {
-    "sensor_msgs/msg/PointCloud2": "points",
-}
-KINDS = (*KIND_TYPES, *NOT_IMPORTED_YET.values())
-
-# The CitrusFarm data set's topics (Teng et al., ISVC 2023; the paper's lab, a Jackal).
-CITRUSFARM_TOPICS: Mapping[str, str] = {
-    "points": "/velodyne_points",
-    "camera": "/mapir_cam/image_raw",
-    "gnss": "/piksi/navsatfix_best_fix",
-    "odom": "/jackal_velocity_controller/odom",
-    "imu": "/microstrain/imu/data",
-}
-# /piksi/navsatfix_best_fix carries RTK fixed solutions.
-CITRUSFARM_GNSS_QUALITY = 4
 
 # A NavSatFix with STATUS_GBAS_FIX (ground-based augmentation: RTK) is RTK fixed when its
 # horizontal sigma is at most this, else RTK float (NavSatFix cannot say which).
@@ -159,19 +137,6 @@ class _Out:
     data: bytes
     log_time: int
     publish_time: int
-
-
-def parse_topics(items: list[str]) -> dict[str, str]:
-    """`KIND=TOPIC` strings to a mapping; ConfigError for a bad item or an unknown kind."""
-    topics: dict[str, str] = {}
-    for item in items:
-        kind, sep, topic = item.partition("=")
-        if not sep or not topic:
-            raise ConfigError(f"--topics takes KIND=TOPIC, got {item!r}")
-        if kind not in KINDS:
-            raise ConfigError(f"--topics: unknown kind {kind!r}; kinds: {', '.join(KINDS)}")
-        topics[kind] = topic if topic.startswith("/") else f"/{topic}"
-    return topics
 
 
 def _stamp_ns(stamp: Any) -> int:

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 from treetraits.errors import ConfigError
 
+# pipeline.method: rph is the baseline as shipped; rph-vlp16 RPH retuned for single VLP-16 scans.
+METHODS = ("paper", "rph", "rph-vlp16")
 TRAIT_METHODS = ("paper", "robust")
 CLUSTERING_METHODS = ("kdtree", "dbscan")
 GROUND_METHODS = ("numpy", "open3d")

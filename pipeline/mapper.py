@@ -402,9 +402,11 @@ class _NdviOf:
         self.reason = "ok"
 
     def __call__(self, index: np.ndarray) -> np.ndarray:
-        from treetraits.pipeline.fusion import fuse_scan
+        from treetraits.pipeline.fusion import MAPPER_REDUCTION, fuse_scan
 
         sub = replace(self.scan, points=self.points[index])
-        fused = fuse_scan(sub, [self.frame], self.calibration, keep_ndvi_frame=False)
+        fused = fuse_scan(
+            sub, [self.frame], self.calibration, keep_ndvi_frame=False, reduction=MAPPER_REDUCTION
+        )
         self.reason = fused.reason
         return np.asarray(fused.ndvi, dtype=float)

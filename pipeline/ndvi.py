@@ -131,13 +131,19 @@ class PixelNdvi:
     """The NDVI of a decoded image computed only at the pixels read, for a caller that
     samples a few thousand pixels of a 720p frame (`projection.point_ndvi`): indexing
     `[rows, cols]` gives exactly `ndvi_image(image, ...)[rows, cols]` (the formulas are
-    per pixel), without working out the other ~900 000 pixels (~10 ms a frame)."""
+    per pixel), without working out the other ~900 000 pixels (~10 ms a frame).
+
+    `reduction` r > 1: `image` is the frame decoded at 1/r of its size (`Frame.decode`);
+    it is still indexed in full-size pixels (`shape` is the full size, `full_shape`), pixel
+    (row, col) reading the reduced pixel (row // r, col // r) that covers it."""
 
     def __init__(
         self,
         image: np.ndarray,
         channels: Mapping[str, int],
         gains: Mapping[str, tuple[float, float]],
+        reduction: int = 1,
+        full_shape: tuple[int, int] | None = None,
     ):
         if image.ndim != 3:
             raise ValueError(f"expected an H x W x 3 image, got shape {image.shape}")
@@ -145,10 +151,18 @@ class PixelNdvi:
             if band not in channels:
                 raise CalibrationError(f"camera.channels has no {band!r} band")
         self.image, self.channels, self.gains = image, channels, gains
-        self.shape = image.shape[:2]
+        self.reduction = reduction
+        self.shape = image.shape[:2] if full_shape is None else tuple(full_shape)
+        if tuple(-(-n // reduction) for n in self.shape) != image.shape[:2]:
+            raise ValueError(
+                f"a {image.shape[1]}x{image.shape[0]} image is not {self.shape[1]}x"
+                f"{self.shape[0]} reduced {reduction} times"
+            )
 
     def __getitem__(self, index: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         rows, cols = index
+        if self.reduction > 1:
+            rows, cols = rows // self.reduction, cols // self.reduction
         if self.image.dtype == np.uint8:
             nir = self.image[rows, cols, self.channels["nir"]].astype(np.intp)
             nir <<= 8

@@ -25,7 +25,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from treetraits.pipeline.config import TerrainConfig
 
@@ -137,6 +136,8 @@ def _grow(lowest, observed, ground, accepted, config: TerrainConfig) -> np.ndarr
     lowest layer continues the nearest accepted ground within the slope limit over the
     distance between them; among neighbouring candidates the lowest go first, so a
     skirt is judged against the ground beside it, not against ground beyond a gap."""
+    from scipy import ndimage
+
     c = config.cell_m
     pending = observed & ~accepted
     window = max(3, 2 * round(config.support_radius_m / c) + 1)
@@ -184,6 +185,8 @@ def _median3(ground: np.ndarray) -> np.ndarray:
 def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float) -> np.ndarray:
     """Ground under objects and in shadows: a Gaussian-weighted mean of the accepted
     ground around (normalised convolution), widening until every cell has some."""
+    from scipy import ndimage
+
     known = accepted & np.isfinite(ground)
     values = np.where(known, ground, 0.0)
     out = np.where(known, ground, np.nan)

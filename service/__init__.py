@@ -5,3 +5,9 @@ processing loop on the main thread (`runtime`), the run's outputs shared with `t
 replay` (`outputs`), per-sensor health (`health`) and the systemd protocol (`notify`).
 The configuration is `config`; docs/service.md is the reference.
 """
+
+from pathlib import Path
+
+# Where `make install` puts the config. Here, not in config.py, so that the command line's
+# help reads it without loading the config's schema (and through it, the pipeline).
+DEFAULT_CONFIG_PATH = Path("/etc/treetraits/config.toml")

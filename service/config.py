@@ -31,6 +31,7 @@ from typing import Any
 from treetraits.drivers.velodyne.models import model_by_name
 from treetraits.errors import ConfigError
 from treetraits.pipeline.config import (
+    METHODS,
     TRAIT_METHODS,
     DetectionConfig,
     MapperConfig,
@@ -45,10 +46,6 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-DEFAULT_CONFIG_PATH = Path("/etc/treetraits/config.toml")
-
-# rph: the baseline as shipped; rph-vlp16: RPH retuned for single VLP-16 scans.
-METHODS = ("paper", "rph", "rph-vlp16")
 WHEEL_KINDS = ("jackal", "bridge")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 

@@ -29,7 +29,8 @@ from pathlib import Path
 
 from treetraits.drivers.camera.devices import list_video_devices, resolve_device
 from treetraits.errors import TreetraitsError
-from treetraits.service.config import DEFAULT_CONFIG_PATH, ServiceConfig, load_config
+from treetraits.service import DEFAULT_CONFIG_PATH
+from treetraits.service.config import ServiceConfig, load_config
 
 SERVICE_USER = "treetraits"
 SERVICE_GROUPS = ("dialout", "video")

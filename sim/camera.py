@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from treetraits.drivers.calibration import Calibration
@@ -93,11 +92,15 @@ class Survey3Emulator:
         image = np.clip(np.round(image), 0, 255).astype(np.uint8)
         image = image.reshape(self._size[1], self._size[0], 3)
         if self._size != (camera.width, camera.height):
+            import cv2
+
             size = (camera.width, camera.height)
             image = cv2.resize(image, size, interpolation=cv2.INTER_NEAREST)
         return image
 
     def jpeg(self, world_from_base: np.ndarray, t_ns: int | None = None) -> bytes:
+        import cv2
+
         ok, data = cv2.imencode(
             ".jpg",
             self.render(world_from_base, t_ns),

@@ -10,7 +10,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import pyproj
 
 from treetraits.drivers.gnss.compose import lat_field, lon_field, sentence
 
@@ -80,6 +79,8 @@ class UtmZone:
     the grid convergence (PROJ)."""
 
     def __init__(self, zone: int, north: bool = True):
+        import pyproj
+
         epsg = (32600 if north else 32700) + zone
         self._to_wgs84 = pyproj.Transformer.from_crs(f"EPSG:{epsg}", "EPSG:4326", always_xy=True)
         self._proj = pyproj.Proj(proj="utm", zone=zone, south=not north, ellps="WGS84")

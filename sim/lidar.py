@@ -13,13 +13,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-import open3d as o3d
 
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne.encode import encode_packets
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 # Pose of base_link in the world at times t (ns array): x, y, z, yaw arrays, optionally
 # followed by pitch and roll (REP-103, R = Rz(yaw) Ry(pitch) Rx(roll); absent = level).
@@ -84,6 +86,8 @@ class Scene:
     a scene of its own; the ray parameter (the distance) is the same in both frames."""
 
     def __init__(self) -> None:
+        import open3d as o3d  # heavy (pulls plotly and dash): only where meshes are cast
+
         self._scene = o3d.t.geometry.RaycastingScene()
         self._labels: list[int] = []
         # (own scene, label, sway or walk, x-y centre, reach: horizontal radius about the
@@ -102,6 +106,8 @@ class Scene:
         walk: Walk | None = None,
         material: Material | None = None,
     ) -> None:
+        import open3d as o3d
+
         mesh = o3d.t.geometry.TriangleMesh()
         mesh.vertex.positions = o3d.core.Tensor(np.asarray(vertices, dtype=np.float32))
         mesh.triangle.indices = o3d.core.Tensor(np.asarray(triangles, dtype=np.int32))
@@ -140,6 +146,8 @@ class Scene:
     def cast(self, origins: np.ndarray, directions: np.ndarray, t_ns=None):
         """Distance along each unit ray (inf for a miss) and the label hit (-1 for none).
         `t_ns` (one time or one per ray, ns) places the swaying meshes; required if any."""
+        import open3d as o3d
+
         rays = np.hstack([origins, directions]).astype(np.float32)
         hits = self._scene.cast_rays(o3d.core.Tensor(rays))
         distance = hits["t_hit"].numpy()

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
 GROUND_ID = 0  # geometry label of the ground; trees are labelled by their index + 1
@@ -298,6 +297,8 @@ def _cylinder(x, y, z0, z1, radius, sides: int = 12):
 
 def measure_truth(spec: TreeSpec, vertices: np.ndarray, ground: Ground) -> TreeTruth:
     """Width and height of the generated tree, by the traits' definitions."""
+    import cv2
+
     base_z = float(ground.height(spec.x, spec.y))
     hull = cv2.convexHull(vertices[:, :2].astype(np.float32)).reshape(-1, 2).astype(float)
     gaps = hull[:, None, :] - hull[None, :, :]

@@ -21,8 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from treetraits.sim import PATHS
+
 GOAL_M = 23.0
-PATHS = ("straight", "s", "n")
 
 
 @dataclass(frozen=True)

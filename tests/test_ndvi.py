@@ -377,3 +377,16 @@ def test_pixel_ndvi_reads_what_the_whole_frame_holds_at_those_pixels():
         assert np.isnan(sampled[rows[:1], cols[:1]]).all()
     with pytest.raises(CalibrationError, match="nir"):
         PixelNdvi(image, {"red": 2}, gains)
+
+
+def test_pixel_ndvi_of_a_reduced_image_reads_the_pixel_covering_each_full_size_one():
+    rng = np.random.default_rng(2)
+    reduced = rng.integers(0, 256, (36, 64, 3), dtype=np.uint8)  # 127x71 at half size
+    gains = {"red": (0.004, -0.02), "nir": (0.0036, -0.01)}
+    sampled = PixelNdvi(reduced, CHANNELS, gains, reduction=2, full_shape=(71, 127))
+    assert sampled.shape == (71, 127)  # indexed in full-size pixels, as the calibration
+    rows, cols = rng.integers(0, 71, 500), rng.integers(0, 127, 500)
+    whole = ndvi_image(reduced, CHANNELS, gains)
+    np.testing.assert_array_equal(sampled[rows, cols], whole[rows // 2, cols // 2])
+    with pytest.raises(ValueError, match="reduced 2 times"):
+        PixelNdvi(reduced, CHANNELS, gains, reduction=2, full_shape=(72, 140))

@@ -30,11 +30,11 @@ from pathlib import Path
 from typing import Protocol
 from urllib.parse import parse_qs, urlsplit
 
+from treetraits.drivers import DEFAULT_BAUD
 from treetraits.drivers.gnss.sentences import Sentence
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.errors import SourceError
 
-DEFAULT_BAUD = 9600  # most receivers' factory setting (u-blox ZED-F9P UART1: 38400)
 _READ_TIMEOUT_S = 0.1  # longest a serial read blocks, so close() and deadlines are seen
 _LOG_CHUNK = 64 * 1024
 _MCAP_MAGIC = b"\x89MCAP0\r\n"

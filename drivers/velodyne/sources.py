@@ -25,11 +25,10 @@ from urllib.parse import parse_qs, urlsplit
 
 import dpkt
 
+from treetraits.drivers import DATA_PORT, TELEMETRY_PORT
 from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE, HOUR_NS, POSITION_PACKET_SIZE
 from treetraits.errors import SourceError
 
-DATA_PORT = 2368
-TELEMETRY_PORT = 8308
 DEFAULT_RCVBUF = 8 * 1024 * 1024  # ~5 s of dual-return traffic; the kernel caps it at rmem_max
 _CLOSE_POLL_S = 0.5
 _SO_RXQ_OVFL = 40  # Linux: per-socket count of datagrams dropped for a full buffer

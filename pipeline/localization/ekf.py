@@ -11,7 +11,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from treetraits.pipeline.localization.utm import wrap_angle
 
@@ -40,6 +39,8 @@ class PoseFilter:
     """x = [x, y, yaw]; all angles ENU (counter-clockwise from east), metres."""
 
     def __init__(self, x: float, y: float, yaw: float, covariance: np.ndarray):
+        from filterpy.kalman import ExtendedKalmanFilter  # heavy: scipy.stats
+
         self._ekf = ExtendedKalmanFilter(dim_x=3, dim_z=2)
         self._ekf.x = np.array([x, y, wrap_angle(yaw)], dtype=float)
         self._ekf.P = np.array(covariance, dtype=float)

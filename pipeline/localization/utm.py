@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-import pyproj
+if TYPE_CHECKING:
+    import pyproj
 
 
 @dataclass(frozen=True)
@@ -29,6 +31,8 @@ class UtmGrid:
 
     @classmethod
     def for_zone(cls, zone: int, north: bool) -> UtmGrid:
+        import pyproj
+
         epsg = (32600 if north else 32700) + zone
         return cls(
             zone=zone,

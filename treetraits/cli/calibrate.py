@@ -10,20 +10,14 @@ import os
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from treetraits.drivers.calibration import load_calibration
 from treetraits.errors import CalibrationError, ConfigError, SourceError
-from treetraits.pipeline.ndvi import (
-    MAPIR_TARGET_V2,
-    BandFit,
-    Box,
-    find_target_v2,
-    fit_reflectance,
-    sample_panels,
-)
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from treetraits.pipeline.ndvi import BandFit, Box
 
 DEFAULT_CHANNELS = {"red": 2, "green": 1, "nir": 0}
 REQUIRED_BANDS = ("red", "nir")  # green is optional in calibration v1
@@ -76,6 +70,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _box(text: str) -> Box:
+    from treetraits.pipeline.ndvi import Box
+
     try:
         return Box.parse(text)
     except ValueError as exc:
@@ -92,6 +88,8 @@ def _read_json(path: Path, what: str) -> Any:
 
 
 def _channels(args: argparse.Namespace) -> dict[str, int]:
+    from treetraits.drivers.calibration import load_calibration
+
     for path in (args.calibration, args.write):
         if path is not None and (path == args.calibration or path.exists()):
             calibration = load_calibration(path)
@@ -101,6 +99,8 @@ def _channels(args: argparse.Namespace) -> dict[str, int]:
 
 
 def _target(path: Path | None) -> dict[str, tuple[float, ...]]:
+    from treetraits.pipeline.ndvi import MAPIR_TARGET_V2
+
     if path is None:
         return dict(MAPIR_TARGET_V2)
     data = _read_json(path, "target")
@@ -116,6 +116,9 @@ def _target(path: Path | None) -> dict[str, tuple[float, ...]]:
 
 def run_reflectance(args: argparse.Namespace) -> int:
     import cv2
+    import numpy as np
+
+    from treetraits.pipeline.ndvi import find_target_v2, fit_reflectance, sample_panels
 
     if not args.image.is_file():
         raise SourceError(f"{args.image}: no such file (expected a JPEG or PNG of the target)")
@@ -205,6 +208,8 @@ def run_reflectance(args: argparse.Namespace) -> int:
 def _write_reflectance(path: Path, section: dict[str, list[float]]) -> None:
     """Replace the `reflectance` section of `path` (other sections kept), checked by the
     calibration loader before the file is atomically replaced."""
+    from treetraits.drivers.calibration import load_calibration
+
     data: dict[str, Any] = {}
     if path.exists():
         data = _read_json(path, "calibration")

@@ -6,7 +6,6 @@ import argparse
 from pathlib import Path
 
 from treetraits.cli.run import add_config_option, read_config
-from treetraits.service.config import dump_config, load_config
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -36,11 +35,15 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run_dump(args: argparse.Namespace) -> int:
+    from treetraits.service.config import dump_config
+
     print(dump_config(read_config(args.config), comments=not args.bare), end="")
     return 0
 
 
 def run_check(args: argparse.Namespace) -> int:
+    from treetraits.service.config import load_config
+
     load_config(args.file)
     print(f"{args.file}: ok")
     return 0

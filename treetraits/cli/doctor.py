@@ -8,8 +8,6 @@ import shutil
 import textwrap
 from pathlib import Path
 
-from treetraits.service.doctor import Status, run_checks
-
 
 def register(commands: argparse._SubParsersAction) -> None:
     doctor = commands.add_parser(
@@ -42,10 +40,10 @@ def register(commands: argparse._SubParsersAction) -> None:
     doctor.set_defaults(run=run)
 
 
-_MARK = {Status.OK: "ok", Status.WARN: "WARN", Status.FAIL: "FAIL"}
-
-
 def run(args: argparse.Namespace) -> int:
+    from treetraits.service.doctor import Status, run_checks
+
+    mark = {Status.OK: "ok", Status.WARN: "WARN", Status.FAIL: "FAIL"}
     checks = run_checks(args.config, udp_seconds=args.udp_seconds)
     if args.json:
         print(json.dumps([c.as_dict() for c in checks], indent=2))
@@ -54,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         columns = max(60, shutil.get_terminal_size((100, 20)).columns)
         indent = " " * (width + 8)
         for check in checks:
-            head = f"{_MARK[check.status]:<5} {check.name:<{width}}  "
+            head = f"{mark[check.status]:<5} {check.name:<{width}}  "
             print(
                 textwrap.fill(check.detail, columns, initial_indent=head, subsequent_indent=indent)
             )

@@ -12,7 +12,7 @@ from treetraits.errors import ConfigError
 
 
 def register(commands: argparse._SubParsersAction) -> None:
-    from treetraits.evaluation.run import DEFAULT_METHODS, METHODS
+    from treetraits.evaluation.methods import DEFAULT_METHODS, METHODS
 
     ev = commands.add_parser(
         "eval",

@@ -6,25 +6,15 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from treetraits.drivers import recording
-from treetraits.drivers.calibration import Calibration, load_calibration
-from treetraits.drivers.records import Frame, Scan
-from treetraits.drivers.velodyne.reader import LidarReader
-from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import CalibrationError, ConfigError, SourceError
-from treetraits.pipeline.fusion import (
-    FusionConfig,
-    colorize_mask,
-    colorize_ndvi,
-    draw_points,
-    fuse_scan,
-    height_colours,
-)
-from treetraits.pipeline.ndvi import vegetation_mask
-from treetraits.pipeline.projection import OcclusionRule, PointStatus, nearest_frame, scan_mid_time
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from treetraits.drivers.calibration import Calibration
+    from treetraits.drivers.records import Frame, Scan
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -76,6 +66,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _calibration(args: argparse.Namespace, stored: dict) -> Calibration:
+    from treetraits.drivers.calibration import load_calibration
+
     if args.calibration is not None:
         calibration = load_calibration(args.calibration)
     else:
@@ -93,6 +85,10 @@ def _calibration(args: argparse.Namespace, stored: dict) -> Calibration:
 
 
 def _scan(path: str, number: int) -> Scan:
+    from treetraits.drivers.records import Scan
+    from treetraits.drivers.velodyne.reader import LidarReader
+    from treetraits.drivers.velodyne.sources import open_source
+
     reader = LidarReader(open_source(path))
     count = 0
     try:
@@ -112,6 +108,9 @@ def _scan(path: str, number: int) -> Scan:
 def _frames_near(path: str, t_mid: int, max_skew_ns: int) -> tuple[list[int], list[Frame]]:
     """Every frame's capture time, and the frames within the skew limit (bytes kept only
     for those, so a long recording is not held in memory)."""
+    from treetraits.drivers import recording
+    from treetraits.drivers.records import Frame
+
     times: list[int] = []
     near: list[Frame] = []
     with recording.read_recording(path, topics=[recording.CAMERA_JPEG]) as reader:
@@ -125,6 +124,25 @@ def _frames_near(path: str, t_mid: int, max_skew_ns: int) -> tuple[list[int], li
 
 
 def run_fuse(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from treetraits.drivers import recording
+    from treetraits.pipeline.fusion import (
+        FusionConfig,
+        colorize_mask,
+        colorize_ndvi,
+        draw_points,
+        fuse_scan,
+        height_colours,
+    )
+    from treetraits.pipeline.ndvi import vegetation_mask
+    from treetraits.pipeline.projection import (
+        OcclusionRule,
+        PointStatus,
+        nearest_frame,
+        scan_mid_time,
+    )
+
     if args.scan < 0:
         raise ConfigError(f"--scan must be >= 0, got {args.scan}")
     if args.dot_radius < 0:
@@ -195,6 +213,8 @@ def run_fuse(args: argparse.Namespace) -> int:
 
 
 def _height_range(text: str | None, heights: np.ndarray) -> tuple[float, float]:
+    import numpy as np
+
     if text:
         try:
             low, high = (float(v) for v in text.split(","))

@@ -5,23 +5,20 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from tqdm import tqdm
-
-from treetraits.drivers.calibration import load_calibration
-from treetraits.drivers.rosbag_import import (
+from treetraits.drivers.rosbag_topics import (
     CITRUSFARM_GNSS_QUALITY,
     CITRUSFARM_TOPICS,
     KIND_TYPES,
     KINDS,
     NOT_IMPORTED_YET,
-    ImportOptions,
-    ImportReport,
-    import_bags,
     parse_topics,
 )
 from treetraits.errors import ConfigError
-from treetraits.sim.run import DEFAULT_CALIBRATION
+
+if TYPE_CHECKING:
+    from treetraits.drivers.rosbag_import import ImportOptions, ImportReport
 
 PRESETS = ("citrusfarm",)
 
@@ -98,6 +95,10 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def options_from_args(args: argparse.Namespace) -> ImportOptions:
     """The import's options: the preset's, then what the user gave."""
+    from treetraits.drivers.calibration import load_calibration
+    from treetraits.drivers.rosbag_import import ImportOptions
+    from treetraits.sim.run import DEFAULT_CALIBRATION
+
     topics: dict[str, str] | None = None
     calibration_path = args.calibration
     quality = args.gnss_quality
@@ -123,6 +124,10 @@ def options_from_args(args: argparse.Namespace) -> ImportOptions:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from treetraits.drivers.rosbag_import import import_bags
+
     options = options_from_args(args)
     with tqdm(unit="msg", desc="import", leave=False, disable=None) as bar:
 

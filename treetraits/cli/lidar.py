@@ -8,16 +8,13 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from tqdm import tqdm
-
-from treetraits.drivers.records import Scan
-from treetraits.drivers.velodyne.pcd import write_pcd
-from treetraits.drivers.velodyne.reader import LidarReader
-from treetraits.drivers.velodyne.sources import DATA_PORT, TELEMETRY_PORT, UdpSource, open_source
-from treetraits.drivers.velodyne.summary import LidarSummary
-from treetraits.drivers.velodyne.telemetry import Telemetry
 from treetraits.errors import ConfigError
+
+if TYPE_CHECKING:
+    from treetraits.drivers.records import Scan
+    from treetraits.drivers.velodyne.reader import LidarReader
 
 _INPUT_HELP = (
     "a libpcap/pcapng capture, an MCAP recording (format v1) or a raw file of 1206-byte "
@@ -26,6 +23,8 @@ _INPUT_HELP = (
 
 
 def register(commands: argparse._SubParsersAction) -> None:
+    from treetraits.drivers import DATA_PORT, TELEMETRY_PORT
+
     lidar = commands.add_parser(
         "lidar",
         help="inspect VLP-16 captures and a live sensor",
@@ -107,6 +106,9 @@ def _add_decoder_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _reader(uri: str, args: argparse.Namespace) -> LidarReader:
+    from treetraits.drivers.velodyne.reader import LidarReader
+    from treetraits.drivers.velodyne.sources import open_source
+
     try:
         return LidarReader(open_source(uri), model=args.model, cut_angle_deg=args.cut_angle)
     except ValueError as exc:
@@ -114,6 +116,10 @@ def _reader(uri: str, args: argparse.Namespace) -> LidarReader:
 
 
 def _summarise(reader: LidarReader) -> dict:
+    from treetraits.drivers.records import Scan
+    from treetraits.drivers.velodyne.summary import LidarSummary
+    from treetraits.drivers.velodyne.telemetry import Telemetry
+
     summary = LidarSummary()
     for item in reader:
         if isinstance(item, Scan):
@@ -147,6 +153,10 @@ def _format_facts(title: str, facts: dict) -> str:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from treetraits.drivers.records import Scan
+
     reader = _reader(args.path, args)
     args.out.mkdir(parents=True, exist_ok=True)
     index_path = args.out / "scans.csv"
@@ -174,6 +184,8 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def _export_one(out: Path, index, number: int, scan: Scan) -> int:
+    from treetraits.drivers.velodyne.pcd import write_pcd
+
     name = f"scan_{number:06d}.pcd"
     write_pcd(out / name, scan.points)
     index.writerow(
@@ -183,6 +195,12 @@ def _export_one(out: Path, index, number: int, scan: Scan) -> int:
 
 
 def run_listen(args: argparse.Namespace) -> int:
+    from treetraits.drivers.records import Scan
+    from treetraits.drivers.velodyne.reader import LidarReader
+    from treetraits.drivers.velodyne.sources import UdpSource
+    from treetraits.drivers.velodyne.summary import LidarSummary
+    from treetraits.drivers.velodyne.telemetry import Telemetry
+
     source = UdpSource(
         host=args.bind,
         port=args.port,

@@ -6,8 +6,6 @@ import argparse
 import json
 import sys
 
-from treetraits.drivers.gnss.sources import DEFAULT_BAUD, open_gnss_source
-from treetraits.drivers.gnss.summary import summarise
 from treetraits.errors import ConfigError
 
 _INPUT_HELP = (
@@ -17,6 +15,8 @@ _INPUT_HELP = (
 
 
 def register(commands: argparse._SubParsersAction) -> None:
+    from treetraits.drivers import DEFAULT_BAUD
+
     nmea = commands.add_parser(
         "nmea",
         help="inspect NMEA 0183 GNSS logs, recordings and live receivers",
@@ -58,6 +58,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run_info(args: argparse.Namespace) -> int:
+    from treetraits.drivers.gnss.sources import open_gnss_source
+    from treetraits.drivers.gnss.summary import summarise
+
     if args.seconds is not None and args.seconds <= 0:
         raise ConfigError(f"--seconds must be positive, got {args.seconds}")
     if args.baud is not None and args.baud <= 0:

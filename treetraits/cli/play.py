@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 from treetraits.errors import ConfigError
-from treetraits.sim.player import RecordingPlayer, write_camera_video
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -67,6 +66,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from treetraits.sim.player import RecordingPlayer, write_camera_video
+
     if not args.speed > 0:
         raise ConfigError(f"--speed must be positive, got {args.speed}")
     if args.camera_video is not None:

@@ -6,7 +6,6 @@ import argparse
 from pathlib import Path
 
 from treetraits.cli.run import add_config_option, read_config
-from treetraits.service.logs import setup_logging
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -27,6 +26,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
+    from treetraits.service.logs import setup_logging
     from treetraits.service.runtime import Service
 
     cfg = read_config(args.config)

@@ -8,15 +8,12 @@ import math
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
 from treetraits.errors import ConfigError
-from treetraits.pipeline.config import TRAIT_METHODS
-from treetraits.service.config import METHODS, load_config, with_method
-from treetraits.service.replay import ReplayOptions, format_table, run_replay
 
 
 def register(commands: argparse._SubParsersAction) -> None:
+    from treetraits.pipeline.config import METHODS, TRAIT_METHODS
+
     replay = commands.add_parser(
         "replay",
         help="run a recording through the pipeline and write the tree outputs",
@@ -88,6 +85,11 @@ def _nmea_offset(text: str) -> float | str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from treetraits.service.config import load_config, with_method
+    from treetraits.service.replay import ReplayOptions, format_table, run_replay
+
     config = with_method(load_config(args.config), args.method, args.traits)
     options = ReplayOptions(
         config=config,

@@ -5,14 +5,12 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from treetraits.service.config import (
-    DEFAULT_CONFIG_PATH,
-    ServiceConfig,
-    load_config,
-    with_overrides,
-)
-from treetraits.service.logs import setup_logging
+from treetraits.service import DEFAULT_CONFIG_PATH
+
+if TYPE_CHECKING:
+    from treetraits.service.config import ServiceConfig
 
 log = logging.getLogger("treetraits.service")
 
@@ -49,12 +47,16 @@ def add_config_option(parser: argparse.ArgumentParser) -> None:
 
 def read_config(path: Path | None) -> ServiceConfig:
     """The config the user named, else the installed one, else the defaults."""
+    from treetraits.service.config import load_config
+
     if path is None and DEFAULT_CONFIG_PATH.is_file():
         path = DEFAULT_CONFIG_PATH
     return load_config(path)
 
 
 def run_service(args: argparse.Namespace) -> int:
+    from treetraits.service.config import with_overrides
+    from treetraits.service.logs import setup_logging
     from treetraits.service.runtime import Service
 
     cfg = read_config(args.config)

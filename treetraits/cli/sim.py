@@ -7,22 +7,14 @@ import dataclasses
 import math
 from pathlib import Path
 
-from tqdm import tqdm
-
-from treetraits.drivers.calibration import load_calibration
 from treetraits.errors import ConfigError
-from treetraits.sim.clutter import ClutterSettings
-from treetraits.sim.gnss import GnssSettings
-from treetraits.sim.lidar import LidarSettings
-from treetraits.sim.orchard import TerrainSettings, TreeSettings, WindSettings
-from treetraits.sim.paths import PATHS
-from treetraits.sim.run import SurveySettings, simulate_survey
-from treetraits.sim.wheels import WheelSettings
 
 QUALITIES = {"rtk": 4, "float": 5, "dgps": 2, "autonomous": 1}
 
 
 def register(commands: argparse._SubParsersAction) -> None:
+    from treetraits.sim import PATHS
+
     sim = commands.add_parser(
         "sim",
         help="simulate a survey of the orchard twin into a recording",
@@ -257,6 +249,16 @@ def _within(option: str, value: float, low: float, high: float) -> None:
 
 
 def run_sim(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from treetraits.drivers.calibration import load_calibration
+    from treetraits.sim.clutter import ClutterSettings
+    from treetraits.sim.gnss import GnssSettings
+    from treetraits.sim.lidar import LidarSettings
+    from treetraits.sim.orchard import TerrainSettings, TreeSettings, WindSettings
+    from treetraits.sim.run import SurveySettings, simulate_survey
+    from treetraits.sim.wheels import WheelSettings
+
     width, length = _pair(args.grid, "--grid")
     columns, rows = _pair(args.layout, "--layout", int)
     outages = []

@@ -27,29 +27,10 @@ import treetraits.sim as sim_package
 from treetraits import __version__
 from treetraits.errors import ConfigError
 from treetraits.evaluation.cases import Case
+from treetraits.evaluation.methods import DEFAULT_METHODS, METHODS
 from treetraits.evaluation.metrics import Detection, detections_from_trees
 from treetraits.service.config import ServiceConfig, with_method
 from treetraits.sim.run import SurveySettings
-
-
-@dataclass(frozen=True)
-class Method:
-    name: str
-    replay_method: str  # ReplayOptions.method
-    traits: str  # ReplayOptions.traits
-    description: str
-
-
-METHODS: dict[str, Method] = {
-    m.name: m
-    for m in (
-        Method("paper", "paper", "paper", "the paper's method and traits (keep the maximum)"),
-        Method("robust", "paper", "robust", "the paper's detection and tracking, robust traits"),
-        Method("rph", "rph", "paper", "RPH baseline as shipped (the one Table I compares)"),
-        Method("rph-vlp16", "rph-vlp16", "paper", "RPH retuned for single VLP-16 scans"),
-    )
-}
-DEFAULT_METHODS = ("paper", "robust", "rph")
 
 
 @dataclass(frozen=True)
