@@ -20,13 +20,14 @@ import numpy as np
 
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration, load_calibration
+from treetraits.drivers.gnss.compose import lat_field, lon_field, sentence
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne.encode import encode_position
 from treetraits.drivers.velodyne.packet import resolve_hour
 from treetraits.drivers.velodyne.telemetry import PPS_LOCKED
 from treetraits.sim.camera import CameraSettings, Survey3Emulator
 from treetraits.sim.clutter import MATERIALS, ClutterSettings, ObjectTruth, place_clutter
-from treetraits.sim.gnss import GnssEmulator, GnssSettings, UtmZone, lat_field, lon_field, sentence
+from treetraits.sim.gnss import GnssEmulator, GnssSettings, UtmZone
 from treetraits.sim.lidar import LidarSettings, Scene, Vlp16Emulator, _poses
 from treetraits.sim.orchard import (
     Ground,
