@@ -1,7 +1,8 @@
 """The `treetraits` command line: one entry point, a sub-command per job.
 
-Errors the user can fix (a bad path, a port in use) print one clear line and exit 2;
-they never end in a traceback.
+Errors the user can fix (a bad path, a port in use) print one clear line and exit with the
+error's code (2 for a bad input or option; the table is in docs/cli.md); they never end in a
+traceback.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from treetraits.cli import (
     run,
     sim,
 )
-from treetraits.errors import TreetraitsError
+from treetraits.errors import EXIT_INTERRUPTED, TreetraitsError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,9 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.run(args) or 0)
     except TreetraitsError as exc:
         print(f"treetraits: error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     except KeyboardInterrupt:
-        return 130
+        return EXIT_INTERRUPTED
     except BrokenPipeError:  # e.g. `treetraits lidar info x | head`
         return 0
 

@@ -13,7 +13,14 @@ from tqdm import tqdm
 from treetraits.errors import ConfigError
 from treetraits.pipeline.config import TRAIT_METHODS
 from treetraits.service.config import METHODS, load_config, with_method
-from treetraits.service.replay import ReplayOptions, format_table, run_replay
+from treetraits.service.outdir import OutputDir
+from treetraits.service.replay import (
+    REPLAY_OUTPUTS,
+    ReplayOptions,
+    format_table,
+    open_replay,
+    run_replay,
+)
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -72,6 +79,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         "traits.method",
     )
     replay.add_argument("--json", action="store_true", help="print the summary as JSON")
+    replay.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the outputs of an earlier run in OUT (without it such a run is kept "
+        "and the replay refused, exit 4); other files in OUT are never touched",
+    )
     replay.set_defaults(run=run)
 
 
@@ -96,10 +109,25 @@ def run(args: argparse.Namespace) -> int:
         nmea=args.nmea,
         nmea_offset=_nmea_offset(args.nmea_offset),
     )
+    # Checked before any input is read, and the inputs before the output is touched: a
+    # failing replay leaves an earlier run's outputs as they were (docs/cli.md).
+    output = OutputDir(
+        args.out,
+        REPLAY_OUTPUTS,
+        force=args.force,
+        inputs=(args.input, args.nmea, args.calibration, args.field_map, args.config),
+    )
+    inputs = open_replay(args.input, options)
     start = time.perf_counter()
-    # Progress in bytes of sensor data (a recording is compressed: no total to show).
-    with tqdm(unit="B", unit_scale=True, desc="replay", leave=False, disable=None) as bar:
-        report = run_replay(args.input, args.out, options, progress=bar.update)
+    try:
+        # Progress in bytes of sensor data (a recording is compressed: no total to show).
+        with (
+            output as staging,
+            tqdm(unit="B", unit_scale=True, desc="replay", leave=False, disable=None) as bar,
+        ):
+            report = run_replay(args.input, staging, options, bar.update, inputs)
+    finally:
+        inputs.source.close()
     elapsed = time.perf_counter() - start
     summary = dict(report.summary, elapsed_s=round(elapsed, 2))
     summary.pop("calibration", None)
