@@ -56,6 +56,8 @@ class Input:
     field_map: bytes | None
     size_bytes: int
     close: Callable[[], None] = lambda: None  # for an input never read (the output refused)
+    # What could not be read, once the messages are: `integrity_facts` of a recording.
+    integrity: Callable[[], dict] = lambda: integrity_facts()
 
 
 def open_input(
@@ -87,6 +89,7 @@ def open_input(
             field_map.data if field_map else None,
             path.stat().st_size,
             recording.close,
+            lambda: integrity_facts(recording),
         )
     if nmea is not None and not Path(nmea).is_file():
         raise SourceError(f"--nmea {nmea}: no such file")
@@ -119,7 +122,24 @@ def open_input(
         None,
         path.stat().st_size,
         source.close,
+        lambda: integrity_facts(truncated=source.stats.truncated),
     )
+
+
+def integrity_facts(recording: rec.RecordingReader | None = None, truncated: bool = False) -> dict:
+    """The summary's account of what could not be read: `damaged_chunks` (skipped, reading
+    went on after them), `truncated` (the file is cut), `lost` (the recorded times the lost
+    messages lie within, ISO UTC; "" where the file does not tell) and `data_loss`."""
+    if recording is None:
+        return {"damaged_chunks": 0, "truncated": truncated, "lost": [], "data_loss": truncated}
+    return {
+        "damaged_chunks": recording.damaged_chunks,
+        "truncated": recording.truncated,
+        "lost": [
+            {"from": iso_utc(d.lost_from_ns), "to": iso_utc(d.lost_to_ns)} for d in recording.damage
+        ],
+        "data_loss": recording.lost_data,
+    }
 
 
 def _packet_message(packet) -> tuple[str, bytes, int, int]:
@@ -312,6 +332,7 @@ def run_replay(
             scans_without_heading=processor.stats.scans_without_heading,
             fixes=processor.stats.fixes,
             frames=processor.stats.frames,
+            **source.integrity(),
         )
         writer.set_facts(summary)
     finally:

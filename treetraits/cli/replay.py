@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
 from tqdm import tqdm
 
-from treetraits.errors import ConfigError
+from treetraits.errors import EXIT_DATA_LOSS, ConfigError
 from treetraits.pipeline.config import TRAIT_METHODS
 from treetraits.service.config import METHODS, load_config, with_method
 from treetraits.service.outdir import OutputDir
@@ -80,6 +81,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     replay.add_argument("--json", action="store_true", help="print the summary as JSON")
     replay.add_argument(
+        "--allow-damaged",
+        action="store_true",
+        help="exit 0 also when the recording is damaged or cut (without it such a replay "
+        "still writes the outputs of what it read, but exits 3: completed with data loss)",
+    )
+    replay.add_argument(
         "--force",
         action="store_true",
         help="replace the outputs of an earlier run in OUT (without it such a run is kept "
@@ -131,9 +138,14 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - start
     summary = dict(report.summary, elapsed_s=round(elapsed, 2))
     summary.pop("calibration", None)
+    # A damaged recording is replayed as far as it reads, and says so: its outputs are
+    # kept, the exit status tells that data is missing from them.
+    status = EXIT_DATA_LOSS if summary["data_loss"] and not args.allow_damaged else 0
+    if summary["data_loss"]:
+        print(f"treetraits: warning: {args.input}: {format_loss(summary)}", file=sys.stderr)
     if args.json:
         print(json.dumps(summary, indent=1))
-        return 0
+        return status
     print(format_table(report.trees + report.missing))
     rejected = ", ".join(f"{n} {reason}" for reason, n in summary["rejected"].items())
     print(
@@ -141,4 +153,23 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['missing']} missing) from {summary['scans']} scans in {elapsed:.1f} s; "
         f"not trees: {rejected or 'none'}; outputs in {args.out}/"
     )
-    return 0
+    if summary["data_loss"]:
+        print(f"DATA LOSS: {format_loss(summary)}")
+    return status
+
+
+def format_loss(summary: dict) -> str:
+    """One line on what of the input could not be read."""
+    parts = []
+    if summary["damaged_chunks"]:
+        parts.append(f"{summary['damaged_chunks']} damaged chunk(s) skipped")
+    if summary["truncated"]:
+        parts.append("the file is cut short")
+    spans = "; ".join(
+        f"between {s['from'] or 'the start'} and {s['to'] or 'the end'}" for s in summary["lost"]
+    )
+    lost = f"; messages lost {spans}" if spans else ""
+    return (
+        f"{' and '.join(parts) or 'damaged'}{lost}; the outputs are from the rest "
+        f"(exit {EXIT_DATA_LOSS}; --allow-damaged accepts it)"
+    )
