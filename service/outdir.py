@@ -27,13 +27,19 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 
-from treetraits.errors import OutputBusyError, OutputExistsError, TreetraitsError
+from treetraits.errors import (
+    FileAccessError,
+    OutputBusyError,
+    OutputExistsError,
+    TreetraitsError,
+)
 
 LOCK_NAME = ".treetraits.lock"
 
 
 class OutputDirError(TreetraitsError):
-    """An output directory that cannot be used (a file in its place, not creatable)."""
+    """An output that cannot be used as given (a file in place of the directory, an input
+    among the outputs); what the system refuses is a `FileAccessError` (exit 6)."""
 
 
 @contextlib.contextmanager
@@ -47,7 +53,7 @@ def output_lock(directory: Path, lock_name: str = LOCK_NAME) -> Iterator[Path]:
     try:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
     except OSError as exc:
-        raise OutputDirError(f"{path}: cannot create the lock file ({_text(exc)})") from exc
+        raise FileAccessError(f"{path}: cannot create the lock file ({_text(exc)})") from exc
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -79,7 +85,7 @@ def _make_directory(directory: Path) -> None:
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputDirError(f"{directory}: cannot create the directory ({_text(exc)})") from exc
+        raise FileAccessError(f"{directory}: cannot create the directory ({_text(exc)})") from exc
 
 
 def _text(exc: OSError) -> str:
@@ -149,7 +155,7 @@ class OutputDir:
         except FileNotFoundError:
             return []
         except OSError as exc:
-            raise OutputDirError(f"{self.directory}: cannot list ({_text(exc)})") from exc
+            raise FileAccessError(f"{self.directory}: cannot list ({_text(exc)})") from exc
         return sorted(n for n in names if self._owns(n) and not n.startswith(f".{self.tag}."))
 
     def _refuse_existing(self) -> None:
@@ -174,7 +180,7 @@ class OutputDir:
                     tempfile.mkdtemp(prefix=f".{self.tag}.staging-", dir=self.directory)
                 )
             except OSError as exc:
-                raise OutputDirError(
+                raise FileAccessError(
                     f"{self.directory}: cannot create a staging directory ({_text(exc)})"
                 ) from exc
         except BaseException:
@@ -214,7 +220,7 @@ class OutputDir:
             for name in new:
                 os.replace(self.staging / name, self.directory / name)
         except OSError as exc:
-            raise OutputDirError(
+            raise FileAccessError(
                 f"{self.directory}: outputs not moved into place ({_text(exc)})"
             ) from exc
         _fsync_directory(self.directory)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from treetraits.drivers.records import Tree
-from treetraits.errors import TreetraitsError
+from treetraits.errors import FileAccessError
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.georef import (
@@ -39,7 +39,7 @@ REJECTED_NAME = "rejected.geojson"
 GEOJSON_NAME = "trees.geojson"
 
 
-class OutputError(TreetraitsError):
+class OutputError(FileAccessError):
     """An output could not be written (disk full, I/O error); the file named is intact."""
 
 

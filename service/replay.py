@@ -249,6 +249,16 @@ class ReplayInputs:
     field_map: list
 
 
+def _attached_text(path: Path, data: bytes) -> str:
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SourceError(
+            f"{path} (attached field map): not UTF-8 text ({exc.reason} at byte {exc.start}); "
+            "give --field-map FILE to replay with another"
+        ) from None
+
+
 def open_replay(path: Path, options: ReplayOptions) -> ReplayInputs:
     """Open the input and load the calibration and field map, so that every input error
     comes before an output is touched."""
@@ -266,7 +276,9 @@ def open_replay(path: Path, options: ReplayOptions) -> ReplayInputs:
         if options.field_map is not None:
             field_map = load_field_map(options.field_map)
         elif source.field_map:
-            field_map = parse_geojson(source.field_map.decode(), f"{path} (attached field map)")
+            field_map = parse_geojson(
+                _attached_text(path, source.field_map), f"{path} (attached field map)"
+            )
         elif cfg.pipeline.field_map:
             field_map = load_field_map(Path(cfg.pipeline.field_map))
         else:

@@ -12,6 +12,7 @@ EXIT_USAGE = 2  # a bad input file or option (TreetraitsError), argparse's own e
 EXIT_DATA_LOSS = 3  # completed, but the input was damaged: part of it was not read
 EXIT_OUTPUT_EXISTS = 4  # an earlier run's outputs are there; --force replaces them
 EXIT_OUTPUT_BUSY = 5  # another run is writing the same output
+EXIT_IO = 6  # the system refused a read or write: permission, disk full, not a directory
 EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
 
 
@@ -47,3 +48,10 @@ class OutputBusyError(TreetraitsError):
     """Another run holds the lock of the output; nothing was touched."""
 
     exit_code = EXIT_OUTPUT_BUSY
+
+
+class FileAccessError(TreetraitsError):
+    """A file or directory the system would not let us read or write (permission denied,
+    disk full, a file where a directory should be, an I/O error)."""
+
+    exit_code = EXIT_IO
