@@ -71,7 +71,10 @@ class RunWriter:
         self.store_path = self.out_dir / STORE_NAME
         self.scans = 0  # scans committed
         self.exports = 0
-        self.store = TraitStore(self.store_path)
+        try:
+            self.store = TraitStore(self.store_path)
+        except sqlite3.Error as exc:  # a full disk, a directory in its place
+            raise OutputError(f"{self.store_path}: store not created: {_sqlite_text(exc)}") from exc
         self._field_index: FieldMapIndex | None = None
         self._closed = False
         if facts:

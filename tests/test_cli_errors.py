@@ -14,7 +14,11 @@ import pytest
 
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import Calibration
 from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_USAGE
+from treetraits.service.config import ServiceConfig
+from treetraits.service.outputs import OutputError, RunWriter
+from treetraits.service.replay import make_processor
 from treetraits.sim.run import SurveySettings, simulate_survey
 
 
@@ -112,3 +116,13 @@ def test_ctrl_c_in_a_replay_is_one_line_exit_130_and_keeps_the_earlier_run(surve
     after = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
     assert after == before
     assert not list(out.glob(".treetraits.staging-*"))
+
+
+def test_a_store_that_cannot_be_created_is_one_error_naming_it(tmp_path):
+    """SQLite refuses a directory where traits.sqlite should be: an OutputError (exit 6)
+    naming the file, not a bare sqlite3 error."""
+    (tmp_path / "traits.sqlite").mkdir()
+    processor = make_processor(ServiceConfig(), Calibration())
+    with pytest.raises(OutputError, match=r"traits\.sqlite: store not created") as refused:
+        RunWriter(tmp_path, processor)
+    assert refused.value.exit_code == EXIT_IO
