@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGINT, previous)
 
 
-INTERRUPTED = "interrupted; outputs of this run not written"
+INTERRUPTED = "interrupted (SIGINT)"
 
 
 def _watch_interrupt(event: threading.Event):
