@@ -68,8 +68,9 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: setup
-	$(BIN)/treetraits sim --grid 5x5 --path straight --seed 0 --out $(DEMO_OUT)/survey.mcap
-	$(BIN)/treetraits replay $(DEMO_OUT)/survey.mcap --out $(DEMO_OUT)
+	@# --force: a rerun replaces the previous demo's recording and outputs (docs/cli.md).
+	$(BIN)/treetraits sim --grid 5x5 --path straight --seed 0 --out $(DEMO_OUT)/survey.mcap --force
+	$(BIN)/treetraits replay $(DEMO_OUT)/survey.mcap --out $(DEMO_OUT) --force
 
 test: setup
 	$(BIN)/ruff check .

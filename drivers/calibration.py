@@ -117,6 +117,12 @@ def load_calibration(source: str | os.PathLike | Mapping[str, Any]) -> Calibrati
             raise CalibrationError(f"{name}: no such calibration file") from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise CalibrationError(f"{name}: not valid JSON ({exc})") from exc
+        except RecursionError:
+            raise CalibrationError(f"{name}: JSON nested too deeply to be a calibration") from None
+        except OSError as exc:
+            raise CalibrationError(
+                f"{name}: cannot read the calibration file ({exc.strerror or exc})"
+            ) from None
     if not isinstance(data, Mapping):
         raise CalibrationError(f"{name}: expected a JSON object at the top level")
     known = {"camera", "reflectance", "T_camera_lidar", "T_base_lidar", "T_base_gnss", "wheels"}

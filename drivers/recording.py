@@ -14,7 +14,8 @@ be replayed through the same drivers later. The format (frozen, see docs/archite
 - attachments may hold the field map (`field_map.geojson`).
 
 `RecordingWriter` writes such a file; `read_recording` reads one linearly, so a file cut by
-a power failure still yields every message of every chunk completed before the cut.
+a power failure still yields every message of every chunk completed before the cut, and a
+damaged chunk is skipped (reading resumes at the next good one) and accounted for.
 """
 
 from __future__ import annotations
@@ -22,8 +23,10 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import mmap
 import operator
 import os
+import re
 import struct
 import time
 from collections.abc import Iterable, Iterator, Mapping
@@ -445,13 +448,98 @@ def _chunk_records(chunk: Chunk, limit: int) -> list[McapRecord]:
     return breakup_chunk(chunk, validate_crc=True)
 
 
+@dataclass(slots=True)
+class Damage:
+    """A stretch of a recording that could not be read, and the messages it cost.
+
+    `lost_from_ns`/`lost_to_ns`: the log times the lost messages lie within, as tight as
+    the file tells: a skipped chunk's own message times when its header is readable, else
+    the last message read before the damage and the first read after it; `lost_to_ns` is
+    None when nothing was read after it (the file is cut there)."""
+
+    offset: int  # file offset where the unreadable bytes start
+    resumed_at: int | None  # where reading went on; None: nothing readable after it
+    chunks: int  # chunk records skipped (a torn record counts as one)
+    lost_from_ns: int | None
+    lost_to_ns: int | None
+
+
+class _TornRecordError(Exception):
+    """A record that cannot be read where one should start (`offset`)."""
+
+    def __init__(self, offset: int):
+        super().__init__(offset)
+        self.offset = offset
+
+
+# Opcodes of the MCAP spec (0x01-0x0F); 0x80-0xFF are private records a reader skips.
+# Anything else where a record should start is damage.
+_KNOWN_OPCODES = frozenset(range(0x01, 0x10))
+_CHUNK_FIXED = 8 + 8 + 8 + 4 + 4 + 8  # a chunk's fields around its compression string
+_FOOTER_RECORD = 1 + 8 + 8 + 8 + 4
+
+
+def _record(opcode: int, body: bytes) -> McapRecord | None:
+    """One top-level record parsed from its body, as mcap's StreamReader does it."""
+    reader = StreamReader(
+        io.BytesIO(bytes([opcode]) + struct.pack("<Q", len(body)) + body),
+        skip_magic=True,
+        emit_chunks=True,
+        record_size_limit=None,
+    )
+    return next(iter(reader.records), None)
+
+
+def _frame_at(data: bytes | mmap.mmap, offset: int, size: int, limit: int) -> bool:
+    """Whether a whole, well-formed chunk, metadata or attachment frame starts at
+    `offset` (a chunk's content unchecked): after damage, reading resumes at the next one.
+    Each field's length must add up to the record's, which bytes in the middle of
+    compressed data do not do by chance."""
+    if offset + 9 > size:
+        return False
+    opcode = data[offset]
+    (length,) = struct.unpack_from("<Q", data, offset + 1)
+    body, end = offset + 9, offset + 9 + length
+    if length > limit or end > size:
+        return False
+    try:
+        if opcode == 0x06:  # chunk
+            if length < _CHUNK_FIXED:
+                return False
+            (uncompressed,) = struct.unpack_from("<Q", data, body + 16)
+            (n,) = struct.unpack_from("<I", data, body + 28)
+            if n not in (0, 3, 4) or uncompressed > limit:
+                return False
+            if bytes(data[body + 32 : body + 32 + n]) not in (b"", b"lz4", b"zstd"):
+                return False
+            (records,) = struct.unpack_from("<Q", data, body + 32 + n)
+            return records == length - _CHUNK_FIXED - n
+        if opcode == 0x0C:  # metadata: name, then a map of string pairs
+            (n,) = struct.unpack_from("<I", data, body)
+            (m,) = struct.unpack_from("<I", data, body + 4 + n)
+            return 4 + n + 4 + m == length
+        if opcode == 0x09:  # attachment: times, name, media type, data, crc
+            (n,) = struct.unpack_from("<I", data, body + 16)
+            (k,) = struct.unpack_from("<I", data, body + 20 + n)
+            (d,) = struct.unpack_from("<Q", data, body + 24 + n + k)
+            return 16 + 4 + n + 4 + k + 8 + d + 4 == length
+    except struct.error:
+        return False
+    return False
+
+
+_FRAME_OPCODES = re.compile(rb"[\x06\x09\x0c]")
+
+
 class RecordingReader:
     """Reads a recording (format v1) linearly, in file order.
 
     Iterating yields `RecordedMessage`s of the wanted `topics` (all topics, known or not,
-    when None). The file is read once, front to back: a file cut short (a power cut) or
-    corrupt yields every message of every intact chunk before the damage, then stops
-    quietly with `truncated` set. Iterate once; the file closes when iteration ends.
+    when None). The file is read once, front to back: a file cut short (a power cut)
+    yields every message of every intact chunk before the cut, with `truncated` set; a
+    damaged chunk is skipped and reading resumes at the next good one (`_guarded`). What
+    could not be read is in `damage`, `damaged_chunks` and `lost_data` once iteration has
+    ended. Iterate once; the file closes when iteration ends.
 
     `metadata` is read when the reader is made; it is None only when the file ends before
     its metadata record. `attachments` (name -> `RecordedAttachment`, the last one of a
@@ -473,12 +561,19 @@ class RecordingReader:
             topics = [topics]
         self.topics: frozenset[str] | None = None if topics is None else frozenset(topics)
         self.truncated = False
+        # What could not be read, in file order (a cut at the end included).
+        self.damage: list[Damage] = []
+        self.orphan_messages = 0  # messages whose channel record was lost with a damaged chunk
+        self._offset = 0  # of the record last read
+        self._data_end = False  # the data section read to its end
+        self._last_time: int | None = None  # log_time of the last message read, any topic
         self.metadata: RecordingMetadata | None = None
         self._limit = record_size_limit
         self._attachments: dict[str, RecordedAttachment] | None = None
         self._iterated = False
         self._closed = False
         self._pending: list[McapRecord] = []
+        self._summary_channels: dict[int, Channel] | None = None
         self._file = self._open()
         try:
             head = self._file.read(len(_MCAP_MAGIC))
@@ -515,19 +610,90 @@ class RecordingReader:
                 f"recording (.mcap)"
             ) from error
 
-    def _guarded(self, file: IO[bytes]) -> Iterator[McapRecord]:
-        """The file's top-level records (chunks not opened); stops at a torn or corrupt
-        record, setting `truncated`. Also set when the file ends without its footer."""
-        reader = StreamReader(
-            _CappedFile(file, self._limit),  # type: ignore[arg-type]
-            emit_chunks=True,
-            record_size_limit=self._limit,
-        )
+    def _guarded(self, file: IO[bytes], track: bool = True) -> Iterator[McapRecord]:
+        """The file's top-level records in file order (chunks not opened). A record that
+        cannot be read is damage: reading resumes at the next well-formed chunk (metadata,
+        attachment) frame after it. When none follows, reading ends: `truncated` is set
+        unless the file ends with its footer. Also set when the file ends without its
+        footer, or its footer without the closing magic. With `track`, damage is noted in
+        `damage` and the offset of each record yielded in `_offset`."""
+        size = os.fstat(file.fileno()).st_size
+        offset = len(_MCAP_MAGIC)
+        while offset < size:
+            try:
+                record, end = self._record_at(file, offset, size)
+            except _TornRecordError as torn:
+                if self._closed:  # a read from a file closed under us
+                    return
+                if track and self._data_end:  # in the summary: no message lost
+                    self.truncated = not _ends_with_footer(file, size)
+                    return
+                resume = _next_frame(file, torn.offset + 1, size, self._limit)
+                complete = resume is not None or _ends_with_footer(file, size)
+                if track:
+                    self._damaged(torn.offset, resume, 1 if complete else 0)
+                    if not complete:
+                        self.truncated = True
+                if resume is None:
+                    return
+                offset = resume
+                continue
+            if record is not None:
+                if track:
+                    self._offset = offset
+                    self._data_end = self._data_end or isinstance(record, DataEnd)
+                yield record
+                if isinstance(record, Footer):
+                    file.seek(end)
+                    if file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC and track:
+                        self.truncated = True
+                    return
+            offset = end
+        if track:  # the file ends without its footer: cut
+            self.truncated = True
+            if not self._data_end:
+                self._damaged(size, None, 0)
+
+    def _record_at(self, file: IO[bytes], offset: int, size: int) -> tuple[McapRecord | None, int]:
+        """The record at `offset` (None for a private record, skipped) and where the next
+        starts; `_TornRecordError` when no readable record is there."""
+        file.seek(offset)
+        head = file.read(9)
+        if len(head) < 9:
+            raise _TornRecordError(offset)
+        opcode, length = struct.unpack("<BQ", head)
+        if opcode not in _KNOWN_OPCODES and opcode < 0x80:
+            raise _TornRecordError(offset)
+        end = offset + 9 + length
+        if length > self._limit or end > size:
+            raise _TornRecordError(offset)
+        body = file.read(length)
+        if opcode >= 0x80:
+            return None, end
         try:
-            yield from reader.records
+            return _record(opcode, body), end
         except _READ_ERRORS:
-            if not self._closed:  # not a read from a file closed under us
-                self.truncated = True
+            raise _TornRecordError(offset) from None
+
+    def _damaged(
+        self, offset: int, resumed_at: int | None, chunks: int, chunk: Chunk | None = None
+    ) -> None:
+        """Note damage at `offset`, merged with the damage just before it when reading
+        resumed right there."""
+        last = self.damage[-1] if self.damage else None
+        if chunk is not None:
+            lost = (chunk.message_start_time, chunk.message_end_time)
+        else:
+            lost = (self._last_time, None)
+        if last is not None and last.resumed_at == offset:
+            last.resumed_at = resumed_at
+            last.chunks += chunks
+            if chunk is not None and last.lost_to_ns is not None:
+                last.lost_to_ns = max(last.lost_to_ns, chunk.message_end_time)
+            elif chunk is None:
+                last.lost_to_ns = None
+            return
+        self.damage.append(Damage(offset, resumed_at, chunks, *lost))
 
     def _read_front(self) -> Metadata | None:
         """Read the records before the first chunk, where the writer puts the metadata,
@@ -582,18 +748,23 @@ class RecordingReader:
                     try:
                         inner = _chunk_records(record, self._limit)
                     except _READ_ERRORS:
-                        self.truncated = True
-                        return
+                        # Its frame is whole, so the next record is where it says.
+                        end = self._offset + 9 + _chunk_length(record)
+                        self._damaged(self._offset, end, 1, record)
+                        continue
                 else:
                     inner = [record]
                 for item in inner:
                     if isinstance(item, Channel):
                         channels[item.id] = item
                     elif isinstance(item, Message):
-                        channel = channels.get(item.channel_id)
-                        if channel is None:  # a message before its channel: corrupt
-                            self.truncated = True
-                            return
+                        channel = channels.get(item.channel_id) or self._summary_channel(
+                            item.channel_id, channels
+                        )
+                        if channel is None:  # its channel was in a damaged chunk
+                            self.orphan_messages += 1
+                            continue
+                        self._read_time(item.log_time)
                         if self.topics is None or channel.topic in self.topics:
                             yield RecordedMessage(
                                 channel.topic,
@@ -604,6 +775,45 @@ class RecordingReader:
                             )
         finally:
             self._file.close()
+
+    def _read_time(self, log_time: int) -> None:
+        """A message was read: it bounds the damage before it."""
+        self._last_time = log_time
+        last = self.damage[-1] if self.damage else None
+        if last is not None and last.lost_to_ns is None and last.resumed_at is not None:
+            last.lost_to_ns = log_time
+
+    def _summary_channel(self, channel_id: int, channels: dict[int, Channel]) -> Channel | None:
+        """A channel whose record was lost with a damaged chunk, from the summary (a
+        complete file repeats every channel there)."""
+        if self._summary_channels is None:
+            self._summary_channels = {}
+            with contextlib.suppress(*_READ_ERRORS, OSError), self._open() as file:
+                file.seek(-len(_MCAP_MAGIC), io.SEEK_END)
+                if file.read(len(_MCAP_MAGIC)) == _MCAP_MAGIC:
+                    file.seek(0)
+                    reader = SeekingReader(
+                        _CappedFile(file, self._limit),  # type: ignore[arg-type]
+                        record_size_limit=self._limit,
+                    )
+                    summary = reader.get_summary()
+                    if summary is not None:
+                        self._summary_channels = dict(summary.channels)
+        channel = self._summary_channels.get(channel_id)
+        if channel is not None:
+            channels[channel_id] = channel
+        return channel
+
+    @property
+    def damaged_chunks(self) -> int:
+        """Chunks skipped as unreadable (a cut at the end is `truncated`, not counted)."""
+        return sum(d.chunks for d in self.damage)
+
+    @property
+    def lost_data(self) -> bool:
+        """Whether messages may have been lost: damage, a cut before the end of the data,
+        or messages whose channel was lost. Known once iteration has ended."""
+        return bool(self.damage) or self.orphan_messages > 0
 
     @property
     def attachments(self) -> dict[str, RecordedAttachment]:
@@ -621,7 +831,11 @@ class RecordingReader:
             found = self._indexed_side_records(file)
             if found is None:
                 file.seek(0)
-                found = [r for r in self._guarded(file) if isinstance(r, (Metadata, Attachment))]
+                found = [
+                    r
+                    for r in self._guarded(file, track=False)
+                    if isinstance(r, (Metadata, Attachment))
+                ]
         metadata = next(
             (r for r in found if isinstance(r, Metadata) and r.name == METADATA_NAME), None
         )
@@ -674,6 +888,32 @@ class RecordingReader:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def _chunk_length(chunk: Chunk) -> int:
+    """The body length of a chunk record as written."""
+    return _CHUNK_FIXED + len(chunk.compression.encode()) + len(chunk.data)
+
+
+def _next_frame(file: IO[bytes], start: int, size: int, limit: int) -> int | None:
+    """The offset of the next well-formed chunk, metadata or attachment frame at or after
+    `start`, or None."""
+    if start >= size:
+        return None
+    with mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        for match in _FRAME_OPCODES.finditer(data, start):
+            if _frame_at(data, match.start(), size, limit):
+                return match.start()
+    return None
+
+
+def _ends_with_footer(file: IO[bytes], size: int) -> bool:
+    """Whether the file ends with a footer record and the closing magic (complete)."""
+    if size < len(_MCAP_MAGIC) * 2 + _FOOTER_RECORD:
+        return False
+    file.seek(size - len(_MCAP_MAGIC) - _FOOTER_RECORD)
+    tail = file.read(_FOOTER_RECORD + len(_MCAP_MAGIC))
+    return tail[:9] == b"\x02" + struct.pack("<Q", 20) and tail[-8:] == _MCAP_MAGIC
 
 
 def _chain(first: list[McapRecord], rest: Iterator[McapRecord]) -> Iterator[McapRecord]:

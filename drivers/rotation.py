@@ -25,11 +25,16 @@ from pathlib import Path
 from typing import Any
 
 from treetraits.drivers.recording import FIELD_MAP_MEDIA_TYPE, FIELD_MAP_NAME, RecordingWriter
-from treetraits.errors import TreetraitsError
+from treetraits.errors import OutputExistsError, TreetraitsError
 
 
 class RecordingError(TreetraitsError):
     """The raw recording cannot go on: disk full, I/O error, or a file already there."""
+
+
+class RecordingExistsError(RecordingError, OutputExistsError):
+    """A recording (or a file of its rotation) is already there: never overwritten, so
+    `record` has no --force (exit 4, docs/cli.md)."""
 
 
 def rotated_path(first_path: Path, index: int) -> Path:
@@ -92,7 +97,7 @@ class RotatingRecorder:
         """Never overwrite a recording, nor mix with the rotation of an earlier one."""
         first = self._first
         if first.exists():
-            raise RecordingError(f"{first}: already exists; record to a new name")
+            raise RecordingExistsError(f"{first}: already exists; record to a new name")
         suffix = re.escape(first.suffix)
         stem = re.escape(first.name[: -len(first.suffix)] if first.suffix else first.name)
         pattern = re.compile(rf"{stem}\.\d+{suffix}")
@@ -107,7 +112,7 @@ class RotatingRecorder:
             raise RecordingError(f"{parent}: cannot list ({_describe(error)})") from error
         clash = sorted(n for n in names if pattern.fullmatch(n))
         if clash:
-            raise RecordingError(
+            raise RecordingExistsError(
                 f"{first}: {parent / clash[0]} of an earlier recording is there; record to a "
                 "new name"
             )
@@ -122,7 +127,7 @@ class RotatingRecorder:
                 fsync_every_s=self._fsync_every_s,
             )
         except FileExistsError:
-            raise RecordingError(f"{path}: already exists; record to a new name") from None
+            raise RecordingExistsError(f"{path}: already exists; record to a new name") from None
         except OSError as error:
             raise self._fail(path, error, None) from error
         self._files.append(path)

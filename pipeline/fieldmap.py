@@ -45,6 +45,8 @@ def load_field_map(path: str | os.PathLike) -> list[FieldTree]:
         raise ConfigError(f"{name}: is a directory, expected a field map file") from None
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{name}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except OSError as exc:
+        raise ConfigError(f"{name}: cannot read the field map ({exc.strerror or exc})") from None
     suffix = Path(name).suffix.lower()
     if suffix in (".geojson", ".json") or (suffix != ".csv" and text.lstrip().startswith("{")):
         return parse_geojson(text, name)
@@ -58,6 +60,8 @@ def parse_geojson(text: str, name: str = "field map") -> list[FieldTree]:
         raise ConfigError(
             f"{name}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})"
         ) from None
+    except RecursionError:
+        raise ConfigError(f"{name}: JSON nested too deeply to be a field map") from None
     if not isinstance(data, dict) or data.get("type") != "FeatureCollection":
         got = data.get("type") if isinstance(data, dict) else type(data).__name__
         raise ConfigError(f"{name}: expected a GeoJSON FeatureCollection, got {got!r}")

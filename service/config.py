@@ -322,6 +322,8 @@ def load_config(path: Path | None) -> ServiceConfig:
         document = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: TOML nested too deeply to be a config") from None
     return parse_config(document, base=path.resolve().parent, source=str(path))
 
 

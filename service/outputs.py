@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from treetraits.drivers.records import Tree
-from treetraits.errors import TreetraitsError
+from treetraits.errors import FileAccessError
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.georef import (
@@ -39,7 +39,7 @@ REJECTED_NAME = "rejected.geojson"
 GEOJSON_NAME = "trees.geojson"
 
 
-class OutputError(TreetraitsError):
+class OutputError(FileAccessError):
     """An output could not be written (disk full, I/O error); the file named is intact."""
 
 
@@ -71,7 +71,10 @@ class RunWriter:
         self.store_path = self.out_dir / STORE_NAME
         self.scans = 0  # scans committed
         self.exports = 0
-        self.store = TraitStore(self.store_path)
+        try:
+            self.store = TraitStore(self.store_path)
+        except sqlite3.Error as exc:  # a full disk, a directory in its place
+            raise OutputError(f"{self.store_path}: store not created: {_sqlite_text(exc)}") from exc
         self._field_index: FieldMapIndex | None = None
         self._closed = False
         if facts:

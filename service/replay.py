@@ -25,7 +25,13 @@ from treetraits.errors import SourceError
 from treetraits.pipeline.fieldmap import load_field_map, parse_geojson
 from treetraits.pipeline.georef import iso_utc
 from treetraits.service.config import ServiceConfig
-from treetraits.service.outputs import STORE_NAME, RunWriter
+from treetraits.service.outputs import (
+    CSV_NAME,
+    GEOJSON_NAME,
+    REJECTED_NAME,
+    STORE_NAME,
+    RunWriter,
+)
 from treetraits.service.survey import SurveyProcessor
 
 
@@ -49,6 +55,9 @@ class Input:
     calibration: dict | None
     field_map: bytes | None
     size_bytes: int
+    close: Callable[[], None] = lambda: None  # for an input never read (the output refused)
+    # What could not be read, once the messages are: `integrity_facts` of a recording.
+    integrity: Callable[[], dict] = lambda: integrity_facts()
 
 
 def open_input(
@@ -79,6 +88,8 @@ def open_input(
             recording.metadata.calibration if recording.metadata else None,
             field_map.data if field_map else None,
             path.stat().st_size,
+            recording.close,
+            lambda: integrity_facts(recording),
         )
     if nmea is not None and not Path(nmea).is_file():
         raise SourceError(f"--nmea {nmea}: no such file")
@@ -105,7 +116,30 @@ def open_input(
         finally:
             source.close()
 
-    return Input(capture_messages(), None, None, path.stat().st_size)
+    return Input(
+        capture_messages(),
+        None,
+        None,
+        path.stat().st_size,
+        source.close,
+        lambda: integrity_facts(truncated=source.stats.truncated),
+    )
+
+
+def integrity_facts(recording: rec.RecordingReader | None = None, truncated: bool = False) -> dict:
+    """The summary's account of what could not be read: `damaged_chunks` (skipped, reading
+    went on after them), `truncated` (the file is cut), `lost` (the recorded times the lost
+    messages lie within, ISO UTC; "" where the file does not tell) and `data_loss`."""
+    if recording is None:
+        return {"damaged_chunks": 0, "truncated": truncated, "lost": [], "data_loss": truncated}
+    return {
+        "damaged_chunks": recording.damaged_chunks,
+        "truncated": recording.truncated,
+        "lost": [
+            {"from": iso_utc(d.lost_from_ns), "to": iso_utc(d.lost_to_ns)} for d in recording.damage
+        ],
+        "data_loss": recording.lost_data,
+    }
 
 
 def _packet_message(packet) -> tuple[str, bytes, int, int]:
@@ -195,28 +229,79 @@ class ReplayReport:
     rejected: list[Tree] = field(default_factory=list)  # objects that are not trees
 
 
-def run_replay(
-    path: Path, out_dir: Path, options: ReplayOptions, progress: Callable[[int], None] | None = None
-) -> ReplayReport:
-    """Process `path` into `out_dir` (traits.sqlite, trees.geojson, trees.csv)."""
+# The files a replay writes into its output directory (service/outdir.py owns them).
+REPLAY_OUTPUTS = (
+    STORE_NAME,
+    f"{STORE_NAME}-wal",
+    f"{STORE_NAME}-shm",
+    CSV_NAME,
+    GEOJSON_NAME,
+    REJECTED_NAME,
+)
+
+
+@dataclass(frozen=True)
+class ReplayInputs:
+    """A replay's inputs, opened and checked: what `open_replay` returns."""
+
+    source: Input
+    calibration: Calibration
+    field_map: list
+
+
+def _attached_text(path: Path, data: bytes) -> str:
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SourceError(
+            f"{path} (attached field map): not UTF-8 text ({exc.reason} at byte {exc.start}); "
+            "give --field-map FILE to replay with another"
+        ) from None
+
+
+def open_replay(path: Path, options: ReplayOptions) -> ReplayInputs:
+    """Open the input and load the calibration and field map, so that every input error
+    comes before an output is touched."""
     cfg = options.config
     source = open_input(path, options.nmea, options.nmea_offset, cfg.localization.gnss_latency_s)
-    if options.calibration is not None:
-        calibration = load_calibration(options.calibration)
-    elif source.calibration:
-        calibration = load_calibration(source.calibration)
-    elif cfg.pipeline.calibration:
-        calibration = load_calibration(Path(cfg.pipeline.calibration))
-    else:
-        calibration = Calibration()
-    if options.field_map is not None:
-        field_map = load_field_map(options.field_map)
-    elif source.field_map:
-        field_map = parse_geojson(source.field_map.decode(), f"{path} (attached field map)")
-    elif cfg.pipeline.field_map:
-        field_map = load_field_map(Path(cfg.pipeline.field_map))
-    else:
-        field_map = []
+    try:
+        if options.calibration is not None:
+            calibration = load_calibration(options.calibration)
+        elif source.calibration:
+            calibration = load_calibration(source.calibration)
+        elif cfg.pipeline.calibration:
+            calibration = load_calibration(Path(cfg.pipeline.calibration))
+        else:
+            calibration = Calibration()
+        if options.field_map is not None:
+            field_map = load_field_map(options.field_map)
+        elif source.field_map:
+            field_map = parse_geojson(
+                _attached_text(path, source.field_map), f"{path} (attached field map)"
+            )
+        elif cfg.pipeline.field_map:
+            field_map = load_field_map(Path(cfg.pipeline.field_map))
+        else:
+            field_map = []
+    except BaseException:
+        source.close()
+        raise
+    return ReplayInputs(source, calibration, field_map)
+
+
+def run_replay(
+    path: Path,
+    out_dir: Path,
+    options: ReplayOptions,
+    progress: Callable[[int], None] | None = None,
+    inputs: ReplayInputs | None = None,
+) -> ReplayReport:
+    """Process `path` into `out_dir` (traits.sqlite, trees.geojson, trees.csv), replacing
+    an earlier replay's store there. `inputs`: from `open_replay`, when the caller opened
+    them before preparing `out_dir` (the CLI, which builds the outputs aside)."""
+    cfg = options.config
+    inputs = inputs or open_replay(path, options)
+    source, calibration, field_map = inputs.source, inputs.calibration, inputs.field_map
 
     out_dir.mkdir(parents=True, exist_ok=True)
     for stale in (STORE_NAME, f"{STORE_NAME}-wal", f"{STORE_NAME}-shm"):
@@ -264,6 +349,7 @@ def run_replay(
                 "host_minus_utc_ms": processor.lidar_clock.stats.host_minus_utc_ms,
             },
             frames=processor.stats.frames,
+            **source.integrity(),
         )
         writer.set_facts(summary)
     finally:

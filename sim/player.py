@@ -411,7 +411,7 @@ class RecordingPlayer:
                 jackal.append((m.log_time, m.data))
             elif m.topic == rec.WHEELS_BRIDGE and wheels_pty:
                 bridge.append((m.log_time, m.data))
-        self.truncated = reader.truncated
+        self.truncated = reader.truncated or reader.lost_data  # cut, or a chunk skipped
         # A recording's messages are in log_time order per chunk, not across: sort stably.
         for items in (lidar, gnss, jackal, bridge):
             items.sort(key=lambda item: item[0])

@@ -18,6 +18,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 import treetraits
+from tests.conftest import chunk_spans
 from treetraits.drivers import recording as rec
 from treetraits.errors import SourceError
 
@@ -414,8 +415,9 @@ def test_cut_in_the_header_yields_nothing(long_recording, tmp_path, cut):
 
 
 def test_garbage_length_after_the_header_is_not_a_memory_error(long_recording, tmp_path):
-    """A record claiming 2**64-1 bytes right after the header: the reader stops, truncated."""
-    source, _ = long_recording
+    """A record claiming 2**64-1 bytes right after the header is not allocated: it is
+    damage, skipped to the next good record, and every message behind it is read."""
+    source, written = long_recording
     data = source.read_bytes()
     with open(source, "rb") as f:
         records = StreamReader(f, emit_chunks=True).records
@@ -424,32 +426,57 @@ def test_garbage_length_after_the_header_is_not_a_memory_error(long_recording, t
     assert data[:8] == MAGIC
     path = tmp_path / "garbage.mcap"
     path.write_bytes(data[:header_end] + b"\x06" + b"\xff" * 8 + data[header_end:])
-    reader = rec.read_recording(path)
-    assert list(reader) == []
-    assert reader.truncated is True
+    messages, reader = _read_all(path)
+    assert messages == _expected(written)
+    assert reader.truncated is False and reader.metadata.calibration == {"k": 1}
+    assert [(d.offset, d.resumed_at) for d in reader.damage] == [(header_end, header_end + 9)]
+    assert reader.lost_data  # it cannot know that nothing was in the garbage
 
 
-def test_corrupt_chunk_stops_at_the_last_good_one(long_recording, tmp_path):
-    """One flipped byte inside the compressed data of a chunk halfway: the chunks before it
-    are returned, then the reader stops."""
+def test_corrupt_chunk_is_skipped_and_reading_goes_on(long_recording, tmp_path):
+    """One flipped byte inside the compressed data of a chunk halfway: that chunk's
+    messages are lost, every other chunk's are read, and the damage says which times."""
     source, written = long_recording
     data = bytearray(source.read_bytes())
-    with open(source, "rb") as f:
-        chunk_ends = []
-        for record in StreamReader(f, emit_chunks=True).records:
-            if isinstance(record, Chunk):
-                chunk_ends.append(f.tell())
-    middle = len(chunk_ends) // 2
-    data[chunk_ends[middle] - 100] ^= 0x55  # inside the data of chunk number `middle`
+    chunks = chunk_spans(source)
+    start, end, chunk = chunks[len(chunks) // 2]
+    data[end - 100] ^= 0x55  # inside the data of the middle chunk
     path = tmp_path / "flipped.mcap"
     path.write_bytes(bytes(data))
 
     messages, reader = _read_all(path)
 
-    expected = _expected(written)
-    assert messages == expected[: len(messages)]
-    assert middle * (PER_CHUNK - 1) <= len(messages) <= (middle + 1) * PER_CHUNK
-    assert reader.truncated is True
+    lost = range(chunk.message_start_time, chunk.message_end_time + 1)
+    expected = [m for m in _expected(written) if m[1] not in lost]
+    assert messages == expected and len(expected) < len(written) - PER_CHUNK + 2
+    assert reader.damaged_chunks == 1 and reader.truncated is False and reader.lost_data
+    (damage,) = reader.damage
+    assert (damage.offset, damage.resumed_at) == (start, end)
+    assert (damage.lost_from_ns, damage.lost_to_ns) == (lost[0], lost[-1])
+
+
+def test_zeroed_chunk_frame_is_skipped_to_the_next_chunk(long_recording, tmp_path):
+    """64 zero bytes over the start of a middle chunk (its opcode, length and times): the
+    reader finds the next chunk by its frame and reads on to the end."""
+    source, written = long_recording
+    data = bytearray(source.read_bytes())
+    chunks = chunk_spans(source)
+    middle = len(chunks) // 2
+    start, _, chunk = chunks[middle]
+    data[start : start + 64] = bytes(64)
+    path = tmp_path / "zeroed.mcap"
+    path.write_bytes(bytes(data))
+
+    messages, reader = _read_all(path)
+
+    lost = range(chunk.message_start_time, chunk.message_end_time + 1)
+    assert messages == [m for m in _expected(written) if m[1] not in lost]
+    assert reader.damaged_chunks == 1 and reader.truncated is False
+    (damage,) = reader.damage
+    assert (damage.offset, damage.resumed_at) == (start, chunks[middle + 1][0])
+    # Its header unreadable, the loss lies between the messages read around it.
+    assert damage.lost_from_ns == chunks[middle - 1][2].message_end_time
+    assert damage.lost_to_ns == chunks[middle + 1][2].message_start_time
 
 
 def test_format_1_1_carries_the_motion_channels_and_format_1_refuses_them(tmp_path):

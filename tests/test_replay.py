@@ -221,7 +221,9 @@ def test_a_real_capture_with_a_real_nmea_log_is_placed_by_the_logs_utc(tmp_path,
     out = tmp_path / "out"
     report = run_replay(capture, out, ReplayOptions(nmea=log, nmea_offset="start"))
     stored = (out / "traits.sqlite").read_bytes()
-    assert main(["replay", str(capture), "--nmea", str(log), "--out", str(out)]) == 2
+    # --force: replacing the earlier run is allowed, but the log is refused first.
+    argv = ["replay", str(capture), "--nmea", str(log), "--out", str(out), "--force"]
+    assert main(argv) == 2
     assert "before the capture starts" in capsys.readouterr().err
     assert (out / "traits.sqlite").read_bytes() == stored  # refused before touching it
 

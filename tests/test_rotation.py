@@ -27,7 +27,7 @@ from treetraits.drivers.recording import (
     read_recording,
 )
 from treetraits.drivers.rotation import RecordingError, RotatingRecorder, rotated_path
-from treetraits.errors import TreetraitsError
+from treetraits.errors import EXIT_OUTPUT_EXISTS, TreetraitsError
 
 REPO = Path(__file__).resolve().parents[1]
 CALIBRATION = {"format_version": "1", "T_base_lidar": [[1, 0, 0, 0.5]]}
@@ -100,8 +100,9 @@ def test_rotated_names():
 def test_refuses_to_overwrite_or_mix_with_an_earlier_rotation(tmp_path):
     first = tmp_path / "REC.mcap"
     first.write_bytes(b"old")
-    with pytest.raises(RecordingError, match="already exists"):
+    with pytest.raises(RecordingError, match="already exists") as refused:
         RotatingRecorder(first, max_bytes=10_000, chunk_bytes=1000, fsync_every_s=1.0)
+    assert refused.value.exit_code == EXIT_OUTPUT_EXISTS  # `record` exits 4 (docs/cli.md)
     assert first.read_bytes() == b"old"
     first.unlink()
     (tmp_path / "REC.3.mcap").write_bytes(b"old")

@@ -354,7 +354,8 @@ class RecordingSource(_ReplaySource):
             yield Frame(
                 bytes(message.data), message.log_time, message.publish_time, message.sequence
             )
-        self.stats.truncated = self._reader.truncated
+        # A chunk skipped as damaged is reported as a cut is: data was lost.
+        self.stats.truncated = self._reader.truncated or self._reader.lost_data
 
     def close(self) -> None:
         super().close()

@@ -130,7 +130,8 @@ class RecordingSource(_SplittingSource):
             self.stats.bytes += len(message.data)
             yield from self.splitter.push(bytes(message.data), message.log_time)
             yield from self.splitter.flush()
-        self.stats.recording_truncated = self._recording.truncated
+        # A chunk skipped as damaged is reported as a cut is: data was lost.
+        self.stats.recording_truncated = self._recording.truncated or self._recording.lost_data
 
     def close(self) -> None:
         self._recording.close()

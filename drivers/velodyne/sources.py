@@ -260,7 +260,8 @@ class McapSource:
                 yield LidarPacket(bytes(message.data), message.log_time)
             else:
                 self.stats.malformed += 1
-        self.stats.truncated = self._recording.truncated
+        # A chunk skipped as damaged is reported as a cut is: data was lost.
+        self.stats.truncated = self._recording.truncated or self._recording.lost_data
 
     def close(self) -> None:
         self._recording.close()

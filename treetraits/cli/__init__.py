@@ -1,35 +1,43 @@
 """The `treetraits` command line: one entry point, a sub-command per job.
 
-Errors the user can fix (a bad path, a port in use) print one clear line and exit 2;
-they never end in a traceback.
+Errors the user can fix (a bad path, a port in use) and what the system refuses (permission,
+disk full) print one clear line and exit with a documented code (docs/cli.md); only a bug ends
+in a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
+import sqlite3
 import sys
+import threading
 
 from treetraits import __version__
-from treetraits.cli import (
-    calibrate,
-    camera,
-    config,
-    doctor,
-    eval,
-    fuse,
-    imports,
-    lidar,
-    nmea,
-    play,
-    record,
-    replay,
-    run,
-    sim,
-)
-from treetraits.errors import TreetraitsError
+from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_USAGE, TreetraitsError
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # The commands are imported here, inside main's error boundary: their imports (NumPy,
+    # Open3D, OpenCV...) take seconds, and Ctrl-C then must not end in a traceback.
+    from treetraits.cli import (
+        calibrate,
+        camera,
+        config,
+        doctor,
+        eval,
+        fuse,
+        imports,
+        lidar,
+        nmea,
+        play,
+        record,
+        replay,
+        run,
+        sim,
+    )
+
     parser = argparse.ArgumentParser(
         prog="treetraits",
         description=(
@@ -57,17 +65,69 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    # The one error boundary of every command: what the user or the system can be told in
+    # a line never ends in a traceback (exit codes: docs/cli.md). Only a bug does (exit 1).
+    interrupted = threading.Event()
+    previous = _watch_interrupt(interrupted)
     try:
+        args = build_parser().parse_args(argv)
         return int(args.run(args) or 0)
     except TreetraitsError as exc:
-        print(f"treetraits: error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(str(exc), exc.exit_code)
     except KeyboardInterrupt:
-        return 130
+        return _fail(INTERRUPTED, EXIT_INTERRUPTED)
     except BrokenPipeError:  # e.g. `treetraits lidar info x | head`
         return 0
+    except OSError as exc:
+        return _fail(describe_os_error(exc), EXIT_IO)
+    except sqlite3.Error as exc:
+        return _fail(f"SQLite: {exc}", EXIT_IO)
+    except RecursionError:
+        return _fail("an input is nested too deeply to be read (JSON or TOML?)", EXIT_USAGE)
+    except UnicodeDecodeError as exc:
+        return _fail(f"an input is not UTF-8 text ({exc.reason} at byte {exc.start})", EXIT_USAGE)
+    except Exception:
+        # Ctrl-C inside a C extension's import comes out as its ImportError ("initialization
+        # failed"): an interruption all the same, not a bug.
+        if interrupted.is_set():
+            return _fail(INTERRUPTED, EXIT_INTERRUPTED)
+        raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
+INTERRUPTED = "interrupted (SIGINT)"
+
+
+def _watch_interrupt(event: threading.Event):
+    """Make Ctrl-C raise KeyboardInterrupt as Python's own handler does, and set `event`.
+    Left alone when SIGINT is ignored (a background job) or handled by someone else, and
+    off the main thread. The handler to put back, or None."""
+
+    def interrupt(signum, frame):
+        event.set()
+        raise KeyboardInterrupt
+
+    with contextlib.suppress(ValueError):  # not the main thread
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            return signal.signal(signal.SIGINT, interrupt)
+    return None
+
+
+def _fail(message: str, code: int) -> int:
+    print(f"treetraits: error: {message}", file=sys.stderr)
+    return code
+
+
+def describe_os_error(exc: OSError) -> str:
+    """`FILE: what the system said` (both files of a rename)."""
+    what = exc.strerror or str(exc)
+    if exc.filename is None:
+        return what
+    if exc.filename2 is not None:
+        return f"{exc.filename} -> {exc.filename2}: {what}"
+    return f"{exc.filename}: {what}"
 
 
 if __name__ == "__main__":

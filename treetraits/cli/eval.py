@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from treetraits.evaluation.report import write_report
     from treetraits.evaluation.run import parse_methods, run_evaluation
     from treetraits.service.config import load_config
+    from treetraits.service.outdir import output_lock
 
     if args.list:
         for case in CASES:
@@ -94,15 +95,18 @@ def run(args: argparse.Namespace) -> int:
     cases = select_cases(args.cases, suite=args.suite)
     methods = parse_methods(args.methods)
     config = load_config(args.config)
-    evaluation = run_evaluation(
-        cases,
-        range(args.first_seed, args.first_seed + seeds),
-        methods,
-        args.out,
-        args.jobs,
-        config=config,
-    )
-    report = write_report(evaluation, args.out)
+    # The lock only: a rerun reuses the recordings cached in OUT/cases/ and rewrites the
+    # tables, so no --force; two evaluations into one OUT would mix them (docs/cli.md).
+    with output_lock(args.out):
+        evaluation = run_evaluation(
+            cases,
+            range(args.first_seed, args.first_seed + seeds),
+            methods,
+            args.out,
+            args.jobs,
+            config=config,
+        )
+        report = write_report(evaluation, args.out)
     if args.json:
         print(json.dumps(report.summary, indent=1))
     else:

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from treetraits.errors import ConfigError
+from treetraits.service.outdir import OutputDir
 
 if TYPE_CHECKING:
     from treetraits.drivers.records import Scan
@@ -60,6 +61,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     export.add_argument("--out", required=True, type=Path, help="output directory")
     export.add_argument(
         "--full-only", action="store_true", help="skip the partial first and last scans"
+    )
+    export.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an earlier export in DIR (its scans.csv and every scan_*.pcd; without "
+        "it the export is refused, exit 4)",
     )
     _add_decoder_options(export)
     export.set_defaults(run=run_export)
@@ -152,18 +159,25 @@ def _format_facts(title: str, facts: dict) -> str:
     return "\n".join(lines)
 
 
+# The files an export owns in its directory (service/outdir.py): replaced whole.
+EXPORT_OUTPUTS = ("scans.csv", "scan_*.pcd")
+
+
 def run_export(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from treetraits.drivers.records import Scan
 
+    output = OutputDir(
+        args.out, EXPORT_OUTPUTS, force=args.force, inputs=[Path(args.path)], what="an export"
+    )
     reader = _reader(args.path, args)
-    args.out.mkdir(parents=True, exist_ok=True)
-    index_path = args.out / "scans.csv"
     written = 0
     pending: Scan | None = None  # held back one scan so --full-only can drop the last
     try:
-        with open(index_path, "w", newline="") as index_file:
+        # Built aside and moved into place at the end: an export into an earlier one
+        # leaves no stale scan of it.
+        with output as staging, open(staging / "scans.csv", "w", newline="") as index_file:
             index = csv.writer(index_file)
             index.writerow(
                 ["file", "scan", "t_start_ns", "t_end_ns", "points", "complete", "lost_packets"]
@@ -173,13 +187,14 @@ def run_export(args: argparse.Namespace) -> int:
                 tqdm(scans, unit="scan", desc="export", leave=False, disable=None)
             ):
                 if pending is not None:
-                    written += _export_one(args.out, index, number - 1, pending)
+                    written += _export_one(staging, index, number - 1, pending)
                 pending = None if (args.full_only and number == 0) else scan
             if pending is not None and not args.full_only:
-                written += _export_one(args.out, index, number, pending)
+                written += _export_one(staging, index, number, pending)
+            index_file.flush()
     finally:
         reader.close()
-    print(f"wrote {written} scans to {args.out} (index: {index_path})")
+    print(f"wrote {written} scans to {args.out} (index: {args.out / 'scans.csv'})")
     return 0
 
 

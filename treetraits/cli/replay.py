@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
-from treetraits.errors import ConfigError
+from treetraits.errors import EXIT_DATA_LOSS, ConfigError
+from treetraits.service.outdir import OutputDir
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -69,6 +71,18 @@ def register(commands: argparse._SubParsersAction) -> None:
         "traits.method",
     )
     replay.add_argument("--json", action="store_true", help="print the summary as JSON")
+    replay.add_argument(
+        "--allow-damaged",
+        action="store_true",
+        help="exit 0 also when the recording is damaged or cut (without it such a replay "
+        "still writes the outputs of what it read, but exits 3: completed with data loss)",
+    )
+    replay.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the outputs of an earlier run in OUT (without it such a run is kept "
+        "and the replay refused, exit 4); other files in OUT are never touched",
+    )
     replay.set_defaults(run=run)
 
 
@@ -88,7 +102,13 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from treetraits.service.config import load_config, with_method
-    from treetraits.service.replay import ReplayOptions, format_table, run_replay
+    from treetraits.service.replay import (
+        REPLAY_OUTPUTS,
+        ReplayOptions,
+        format_table,
+        open_replay,
+        run_replay,
+    )
 
     config = with_method(load_config(args.config), args.method, args.traits)
     options = ReplayOptions(
@@ -98,16 +118,36 @@ def run(args: argparse.Namespace) -> int:
         nmea=args.nmea,
         nmea_offset=_nmea_offset(args.nmea_offset),
     )
+    # Checked before any input is read, and the inputs before the output is touched: a
+    # failing replay leaves an earlier run's outputs as they were (docs/cli.md).
+    output = OutputDir(
+        args.out,
+        REPLAY_OUTPUTS,
+        force=args.force,
+        inputs=(args.input, args.nmea, args.calibration, args.field_map, args.config),
+    )
+    inputs = open_replay(args.input, options)
     start = time.perf_counter()
-    # Progress in bytes of sensor data (a recording is compressed: no total to show).
-    with tqdm(unit="B", unit_scale=True, desc="replay", leave=False, disable=None) as bar:
-        report = run_replay(args.input, args.out, options, progress=bar.update)
+    try:
+        # Progress in bytes of sensor data (a recording is compressed: no total to show).
+        with (
+            output as staging,
+            tqdm(unit="B", unit_scale=True, desc="replay", leave=False, disable=None) as bar,
+        ):
+            report = run_replay(args.input, staging, options, bar.update, inputs)
+    finally:
+        inputs.source.close()
     elapsed = time.perf_counter() - start
     summary = dict(report.summary, elapsed_s=round(elapsed, 2))
     summary.pop("calibration", None)
+    # A damaged recording is replayed as far as it reads, and says so: its outputs are
+    # kept, the exit status tells that data is missing from them.
+    status = EXIT_DATA_LOSS if summary["data_loss"] and not args.allow_damaged else 0
+    if summary["data_loss"]:
+        print(f"treetraits: warning: {args.input}: {format_loss(summary)}", file=sys.stderr)
     if args.json:
         print(json.dumps(summary, indent=1))
-        return 0
+        return status
     print(format_table(report.trees + report.missing))
     rejected = ", ".join(f"{n} {reason}" for reason, n in summary["rejected"].items())
     print(
@@ -115,4 +155,23 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['missing']} missing) from {summary['scans']} scans in {elapsed:.1f} s; "
         f"not trees: {rejected or 'none'}; outputs in {args.out}/"
     )
-    return 0
+    if summary["data_loss"]:
+        print(f"DATA LOSS: {format_loss(summary)}")
+    return status
+
+
+def format_loss(summary: dict) -> str:
+    """One line on what of the input could not be read."""
+    parts = []
+    if summary["damaged_chunks"]:
+        parts.append(f"{summary['damaged_chunks']} damaged chunk(s) skipped")
+    if summary["truncated"]:
+        parts.append("the file is cut short")
+    spans = "; ".join(
+        f"between {s['from'] or 'the start'} and {s['to'] or 'the end'}" for s in summary["lost"]
+    )
+    lost = f"; messages lost {spans}" if spans else ""
+    return (
+        f"{' and '.join(parts) or 'damaged'}{lost}; the outputs are from the rest "
+        f"(exit {EXIT_DATA_LOSS}; --allow-damaged accepts it)"
+    )

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from treetraits.errors import ConfigError
+from treetraits.service.outdir import OutputDir
 
 QUALITIES = {"rtk": 4, "float": 5, "dgps": 2, "autonomous": 1}
 
@@ -44,6 +45,13 @@ def register(commands: argparse._SubParsersAction) -> None:
     sim.add_argument("--path", choices=PATHS, default="straight", help="default straight")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sim.add_argument("--out", required=True, type=Path, help="recording to write (.mcap)")
+    sim.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing recording at --out and its truth, objects and field-map "
+        "files (without it the simulation is refused, exit 4: a field recording is never "
+        "overwritten by a simulation by mistake)",
+    )
     sim.add_argument(
         "--gnss",
         choices=sorted(QUALITIES),
@@ -248,6 +256,29 @@ def _within(option: str, value: float, low: float, high: float) -> None:
         raise ConfigError(f"{option} must be a finite number in [{low:g}, {high:g}], got {value}")
 
 
+def _output(out: Path, force: bool, calibration: Path | None) -> OutputDir:
+    """The recording and the files `simulate_survey` writes beside it, under the output
+    rules (docs/cli.md); locked per recording, so several can be simulated into one
+    directory at once."""
+    if out.is_dir():
+        raise ConfigError(f"--out {out}: is a directory; give the recording's file name")
+    beside = (".truth.csv", ".objects.csv", ".field_map.geojson")
+    owned = [out.name] + [out.with_suffix(suffix).name for suffix in beside]
+    return OutputDir(
+        out.parent,
+        owned,
+        force=force,
+        inputs=[calibration],
+        tag=out.name,
+        what="a recording",
+        target=out,
+    )
+
+
+def _beside(out: Path, staged: Path) -> Path:
+    return out.parent / staged.name
+
+
 def run_sim(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -337,13 +368,25 @@ def run_sim(args: argparse.Namespace) -> int:
         ),
         wheels=dataclasses.replace(WheelSettings(), imu=not args.no_imu),
     )
+    output = _output(args.out, args.force, args.calibration)
     calibration = load_calibration(args.calibration) if args.calibration else None
-    with tqdm(total=100, desc="sim", unit="%", leave=False, disable=None) as bar:
+    with (
+        output as staging,
+        tqdm(total=100, desc="sim", unit="%", leave=False, disable=None) as bar,
+    ):
 
         def progress(fraction: float) -> None:
             bar.update(round(fraction * 100) - bar.n)
 
-        result = simulate_survey(args.out, settings, calibration, progress)
+        # Built aside (the recording and its companions), moved into place when complete.
+        result = simulate_survey(staging / args.out.name, settings, calibration, progress)
+    result = dataclasses.replace(
+        result,
+        recording=args.out,
+        truth_csv=_beside(args.out, result.truth_csv),
+        field_map=_beside(args.out, result.field_map),
+        objects_csv=_beside(args.out, result.objects_csv),
+    )
     print(
         f"wrote {result.recording} ({result.duration_s:.1f} s of driving, "
         + ", ".join(f"{n} {topic}" for topic, n in sorted(result.counts.items()))

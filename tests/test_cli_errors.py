@@ -1,0 +1,138 @@
+"""The CLI's one error boundary (docs/cli.md, "Exit codes"): what the system refuses, bad
+inputs and Ctrl-C each end in one line naming the file and the problem, with a documented
+exit code, never a traceback; an earlier run's outputs stay as they were."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from treetraits.cli import main
+from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import Calibration
+from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_USAGE
+from treetraits.service.config import ServiceConfig
+from treetraits.service.outputs import OutputError, RunWriter
+from treetraits.service.replay import make_processor
+from treetraits.sim.run import SurveySettings, simulate_survey
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    # Two trees, 3 m driven, camera frames included: a real recording in a few seconds.
+    out = tmp_path_factory.mktemp("survey") / "small.mcap"
+    return simulate_survey(out, SurveySettings(columns=2, rows=1, goal=3.0, seed=0))
+
+
+# 130, or killed by SIGINT (-2 to Popen; a shell shows 130 too): CPython ends itself with
+# SIGINT when the interrupt landed in code an extension ran (Open3D's start-up), even if
+# main() handled it.
+INTERRUPTED_STATUS = (EXIT_INTERRUPTED, -signal.SIGINT)
+
+
+def one_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert err.startswith("treetraits: error: ") and err.count("\n") == 1, err
+    assert "Traceback" not in err
+    return err
+
+
+def test_an_output_the_system_refuses_is_one_line_exit_6(survey, tmp_path, capsys):
+    """Paths that fail even for root: a file where a directory should be, /proc."""
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    rec_path = str(survey.recording)
+    cases = [
+        (["replay", rec_path, "--out", str(a_file / "out")], str(a_file / "out")),
+        (["replay", rec_path, "--out", "/proc/treetraits-test/out"], "/proc/treetraits-test"),
+        (["sim", "--goal", "1", "--out", "/proc/treetraits-test.mcap"], "/proc/"),
+        (["lidar", "export", rec_path, "--out", str(a_file / "x")], str(a_file / "x")),
+        # Through the boundary itself (camera grab reports the OSError as it comes).
+        (["camera", "grab", rec_path, "--out", "/proc/treetraits-test"], "/proc/treetraits"),
+    ]
+    for argv, named in cases:
+        capsys.readouterr()
+        assert main(argv) == EXIT_IO, argv
+        assert named in one_line(capsys), argv
+
+
+def test_bad_inputs_are_one_line_naming_the_file_exit_2(survey, tmp_path, capsys):
+    deep_json = tmp_path / "deep.json"
+    deep_json.write_text("[" * 100_000 + "]" * 100_000)
+    deep_toml = tmp_path / "deep.toml"
+    deep_toml.write_text("a = " + "[" * 5000 + "]" * 5000)
+    # A recording whose attached field map is not UTF-8 (a damaged attachment).
+    broken = tmp_path / "broken_attachment.mcap"
+    with rec.RecordingWriter(broken, calibration={}) as writer:
+        writer.attach(rec.FIELD_MAP_NAME, b'{"type": "\xff\xfe', rec.FIELD_MAP_MEDIA_TYPE)
+    replay = ["replay", str(survey.recording), "--out", str(tmp_path / "out")]
+    cases = [
+        ([*replay, "--calibration", str(tmp_path)], f"{tmp_path}: cannot read the calibration"),
+        ([*replay, "--calibration", str(deep_json)], "deep.json: JSON nested too deeply"),
+        ([*replay, "--field-map", str(deep_json)], "deep.json: JSON nested too deeply"),
+        ([*replay, "--config", str(deep_toml)], "deep.toml: TOML nested too deeply"),
+        (["replay", str(broken), "--out", str(tmp_path / "out")], "attached field map): not UTF-8"),
+    ]
+    for argv, named in cases:
+        capsys.readouterr()
+        assert main(argv) == EXIT_USAGE, argv
+        assert named in one_line(capsys), argv
+    assert not (tmp_path / "out").exists()  # refused before the output was made
+
+
+def test_ctrl_c_in_a_replay_is_one_line_exit_130_and_keeps_the_earlier_run(survey, tmp_path):
+    out = tmp_path / "out"
+    assert main(["replay", str(survey.recording), "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
+    argv = ["replay", str(survey.recording), "--out", str(out), "--force"]
+    replay = subprocess.Popen(
+        [sys.executable, "-m", "treetraits", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    # Interrupted while it writes: once its staging directory is there.
+    deadline = time.monotonic() + 120
+    while not list(out.glob(".treetraits.staging-*")) and replay.poll() is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    replay.send_signal(signal.SIGINT)
+    _, err = replay.communicate(timeout=120)
+    assert replay.returncode in INTERRUPTED_STATUS, err
+    assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGINT)"]
+    after = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
+    assert after == before
+    assert not list(out.glob(".treetraits.staging-*"))
+
+
+def test_a_store_that_cannot_be_created_is_one_error_naming_it(tmp_path):
+    """SQLite refuses a directory where traits.sqlite should be: an OutputError (exit 6)
+    naming the file, not a bare sqlite3 error."""
+    (tmp_path / "traits.sqlite").mkdir()
+    processor = make_processor(ServiceConfig(), Calibration())
+    with pytest.raises(OutputError, match=r"traits\.sqlite: store not created") as refused:
+        RunWriter(tmp_path, processor)
+    assert refused.value.exit_code == EXIT_IO
+
+
+@pytest.mark.parametrize("delay_s", [1.0, 2.5])
+def test_ctrl_c_during_start_up_is_one_line_exit_130(survey, tmp_path, delay_s):
+    """SIGINT while the command's modules are imported (seconds: NumPy, Open3D, OpenCV)
+    or just after: the same one line, never a traceback."""
+    argv = ["replay", str(survey.recording), "--out", str(tmp_path / "out")]
+    replay = subprocess.Popen(
+        [sys.executable, "-m", "treetraits", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(delay_s)
+    replay.send_signal(signal.SIGINT)
+    _, err = replay.communicate(timeout=120)
+    assert replay.returncode in INTERRUPTED_STATUS, err
+    assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGINT)"]
+    assert not list((tmp_path / "out").glob("[!.]*"))
