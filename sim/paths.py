@@ -121,13 +121,21 @@ def trajectory_function(poses: np.ndarray, t0_ns: int):
     """A `sim.lidar.Trajectory`: the pose at device times (ns), interpolated (x, y, z = 0,
     yaw; level). `riding_trajectory` puts it on the ground."""
     times = poses[:, 0]
-    yaw = np.unwrap(poses[:, 3])
+    track = np.column_stack([poses[:, 1], poses[:, 2], np.unwrap(poses[:, 3])])
+    # Outside the drive the robot keeps its first and last velocities: it is already
+    # driving when the recording starts (as its wheels report from their first step),
+    # so the IMU's differences across the start read no acceleration that never was.
+    first = (track[1] - track[0]) / (times[1] - times[0])
+    last = (track[-1] - track[-2]) / (times[-1] - times[-2])
 
     def at(t_ns: np.ndarray):
         t = (np.asarray(t_ns) - t0_ns) / 1e9
-        x = np.interp(t, times, poses[:, 1])
-        y = np.interp(t, times, poses[:, 2])
-        return x, y, np.zeros_like(x), np.interp(t, times, yaw)
+        x, y, yaw = (np.interp(t, times, track[:, k]) for k in range(3))
+        before, after = np.minimum(t - times[0], 0.0), np.maximum(t - times[-1], 0.0)
+        x = x + before * first[0] + after * last[0]
+        y = y + before * first[1] + after * last[1]
+        yaw = yaw + before * first[2] + after * last[2]
+        return x, y, np.zeros_like(x), yaw
 
     return at
 
