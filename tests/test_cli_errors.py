@@ -35,6 +35,13 @@ def survey(tmp_path_factory):
 INTERRUPTED_STATUS = (EXIT_INTERRUPTED, -signal.SIGINT)
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    """The child starts with SIGINT at its default, as a command typed in a terminal does:
+    a suite run as a background job (`make test &`, a CI runner) hands its children
+    SIGINT ignored, and the command then rightly leaves Ctrl-C alone."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def one_line(capsys) -> str:
     err = capsys.readouterr().err
     assert err.startswith("treetraits: error: ") and err.count("\n") == 1, err
@@ -95,6 +102,7 @@ def test_ctrl_c_in_a_replay_is_one_line_exit_130_and_keeps_the_earlier_run(surve
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_ctrl_c_as_in_a_terminal,
     )
     # Interrupted while it writes: once its staging directory is there.
     deadline = time.monotonic() + 120
@@ -141,6 +149,7 @@ def test_ctrl_c_during_start_up_is_one_line_exit_130(survey, tmp_path, after_s):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_ctrl_c_as_in_a_terminal,
     )
     _wait_for_library(replay, "numpy")
     time.sleep(after_s)
