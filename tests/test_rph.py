@@ -32,7 +32,7 @@ from treetraits.pipeline.rph import (
 from treetraits.pipeline.rph.clustering import euclidean_clusters
 from treetraits.pipeline.rph.detector import principal_alignment
 from treetraits.pipeline.rph.elevation_map import disk_offsets, median_filter
-from treetraits.sim.lidar import Scene, Vlp16Emulator
+from treetraits.sim.lidar import LidarSettings, Scene, Vlp16Emulator
 from treetraits.sim.orchard import Ground, grid_orchard, ground_mesh, measure_truth, tree_mesh
 
 SHIPPED = RphConfig.shipped()
@@ -235,7 +235,9 @@ def orchard(ground: Ground, seed: int):
         vertices, triangles = tree_mesh(spec, ground, rng)
         truths.append(measure_truth(spec, vertices, ground))
         scene.add(vertices, triangles, label=label)
-    return specs, truths, Vlp16Emulator(scene, DEFAULT_T_BASE_LIDAR, rng=rng)
+    # The sensor on GPS time: its ToH counts on the trajectory's clock (`exact_pose`).
+    settings = LidarSettings(gps_sync=True)
+    return specs, truths, Vlp16Emulator(scene, DEFAULT_T_BASE_LIDAR, settings, rng=rng)
 
 
 def one_scan(emulator, trajectory, t0_ns):
