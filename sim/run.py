@@ -23,7 +23,7 @@ from treetraits.drivers.calibration import Calibration, load_calibration
 from treetraits.drivers.gnss.compose import lat_field, lon_field, sentence
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne.encode import encode_position
-from treetraits.drivers.velodyne.packet import resolve_hour
+from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.drivers.velodyne.telemetry import PPS_LOCKED
 from treetraits.sim.camera import CameraSettings, Survey3Emulator
 from treetraits.sim.clutter import MATERIALS, ClutterSettings, ObjectTruth, place_clutter
@@ -316,12 +316,11 @@ def simulate_survey(
     for index, (t, payload) in enumerate(lidar.packets(pose_at, t0_ns, t_end)):
         # A packet leaves the sensor once its 12 blocks have fired.
         log_time = t + m.PACKET_NS_SINGLE + LATENCY_NS["lidar"] + host
-        toh = int(lidar.device_time(t, t0_ns)) // 1000
-        # publish_time: the ToH with the hour of log_time (recording format v1).
-        messages.append((log_time, rec.LIDAR_PACKETS, payload, _on_hour(toh, log_time)))
+        stamp = lidar_publish_time(payload, log_time)  # recording format v1
+        messages.append((log_time, rec.LIDAR_PACKETS, payload, stamp))
         if s.lidar.gps_sync and index % POSITION_EVERY == 0:
             position = position_packet(t, zone, place, pose_values)
-            stamp = _on_hour(t // 1000, log_time)
+            stamp = lidar_publish_time(position, log_time)
             messages.append((log_time, rec.LIDAR_TELEMETRY, position, stamp))
     if progress:
         progress(0.5)
@@ -363,7 +362,7 @@ def simulate_survey(
             data += mcu.imu(int(t), omega, force)
         log_time = int(t) + LATENCY_NS["wheels"] + host
         messages.append((log_time, rec.WHEELS_JACKAL, data, log_time))
-    messages.sort(key=lambda m: (m[0], m[1]))
+    messages.sort(key=lambda message: (message[0], message[1]))
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -385,11 +384,6 @@ def simulate_survey(
     return SurveyResult(
         out, truth_csv, field_map, truths, duration_s, counts, objects_csv, world.objects
     )
-
-
-def _on_hour(toh_us: int, t_ref: int) -> int:
-    """A ToH as full ns, with the hour that puts it nearest `t_ref`."""
-    return int(resolve_hour(np.array([toh_us]), np.array([t_ref]))[0])
 
 
 def position_packet(t: int, zone: UtmZone, place: Placement, pose_values) -> bytes:
