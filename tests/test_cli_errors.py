@@ -42,6 +42,17 @@ def _ctrl_c_as_in_a_terminal() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+def _start(argv: list[str]) -> subprocess.Popen:
+    """`python -m treetraits ARGV` in a child, its output captured."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "treetraits", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_ctrl_c_as_in_a_terminal,
+    )
+
+
 def one_line(capsys) -> str:
     err = capsys.readouterr().err
     assert err.startswith("treetraits: error: ") and err.count("\n") == 1, err
@@ -97,13 +108,7 @@ def test_ctrl_c_in_a_replay_is_one_line_exit_130_and_keeps_the_earlier_run(surve
     assert main(["replay", str(survey.recording), "--out", str(out)]) == 0
     before = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
     argv = ["replay", str(survey.recording), "--out", str(out), "--force"]
-    replay = subprocess.Popen(
-        [sys.executable, "-m", "treetraits", *argv],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=_ctrl_c_as_in_a_terminal,
-    )
+    replay = _start(argv)
     # Interrupted while it writes: once its staging directory is there.
     deadline = time.monotonic() + 120
     while not list(out.glob(".treetraits.staging-*")) and replay.poll() is None:
@@ -144,13 +149,7 @@ def test_ctrl_c_during_start_up_is_one_line_exit_130(survey, tmp_path, after_s):
     or just after: the same one line, never a traceback. (A signal before Python has run
     any of our code, during the interpreter's own start, cannot be caught by it.)"""
     argv = ["replay", str(survey.recording), "--out", str(tmp_path / "out")]
-    replay = subprocess.Popen(
-        [sys.executable, "-m", "treetraits", *argv],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=_ctrl_c_as_in_a_terminal,
-    )
+    replay = _start(argv)
     _wait_for_library(replay, "numpy")
     time.sleep(after_s)
     replay.send_signal(signal.SIGINT)
