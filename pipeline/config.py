@@ -157,6 +157,28 @@ class ClusterConfig:
     # densest (hedgerows), less 0.2 m of planting error. Clusters shorter than twice
     # this are never cut.
     min_tree_spacing_m: float = 2.3
+    # Posts, poles and people beside or between crowns are cut out of the scan before
+    # clustering (`pipeline.stems`): a blob in the trunk band with a smooth column over
+    # it, no gap, up to at least `min_stem_height_m`, within `stem_radius_m` of its axis.
+    # 0.35 m: half a person's shoulders (0.45-0.5 m) and a post's 0.1 m with margin, less
+    # than a crown's near surface is from its trunk (a young crown's 0.4 m radius and up).
+    stem_radius_m: float = 0.35
+    # 1.2 m: trellis posts stand 1.5-2.2 m, people 1.5-1.9 m; weeds and cover crop end
+    # at 0.6 m and a citrus trunk is hidden by its skirt from 0.35-0.6 m up. 0 turns the
+    # cut off.
+    min_stem_height_m: float = 1.2
+    # The column is judged smooth or rough on its returns above this height: citrus
+    # skirts start by 0.6 m, so higher up a tree's column is foliage (seen through
+    # gaps in the crown) while a post's is still wood and a person's clothes. Below it,
+    # a trunk is as smooth as a post.
+    stem_judged_from_m: float = 0.6
+    # A stem stands clear: between `stem_radius_m` and this, over the column's height,
+    # at most `max_stem_surround_share` as many returns as in the column itself. 0.5 m:
+    # a person between two trees has a hand's breadth of air to either crown; a trunk
+    # has its crown around it and a weed under a skirt the crown's side. A post or a
+    # person pressed into the foliage stays part of the crown (nothing tells them apart).
+    stem_clearance_m: float = 0.5
+    max_stem_surround_share: float = 0.25
     # "kdtree": scipy cKDTree pairs + connected components; "dbscan": open3d
     # `cluster_dbscan(eps, min_points=1)`. Same clusters; see docs for the timing.
     method: str = "kdtree"
@@ -342,6 +364,17 @@ def _validate_detection(d: DetectionConfig) -> None:
     _need(k.max_trunk_width_m > 0, "detection.cluster.max_trunk_width_m must be > 0")
     _need(k.min_trunk_points >= 1, "detection.cluster.min_trunk_points must be >= 1")
     _need(k.min_tree_spacing_m > 0, "detection.cluster.min_tree_spacing_m must be > 0")
+    _need(k.stem_radius_m > 0, "detection.cluster.stem_radius_m must be > 0")
+    _need(k.min_stem_height_m >= 0, "detection.cluster.min_stem_height_m must be >= 0")
+    _need(k.stem_judged_from_m >= 0, "detection.cluster.stem_judged_from_m must be >= 0")
+    _need(
+        k.stem_clearance_m > k.stem_radius_m,
+        "detection.cluster.stem_clearance_m must be > stem_radius_m",
+    )
+    _need(
+        k.max_stem_surround_share >= 0,
+        "detection.cluster.max_stem_surround_share must be >= 0",
+    )
     _need(
         k.method in CLUSTERING_METHODS,
         f"detection.cluster.method must be one of {CLUSTERING_METHODS}",

@@ -23,6 +23,7 @@ from treetraits.pipeline.config import (
     DetectionConfig,
     GroundConfig,
 )
+from treetraits.pipeline.stems import find_stems, stem_of_voxels
 from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
 
 # Voxel keys: 21 bits per axis (+-1M cells: +-100 km at 0.1 m), packed into one int64.
@@ -325,23 +326,32 @@ def detect(
     counts["voxels"] = len(voxels)
     clock.lap("voxel")
 
+    # Posts and people are cut out first, each its own cluster (`pipeline.stems`).
+    lidar_xy = T_base_lidar[:2, 3]
+    stem_of = _stems(xyz, height, ring, T_base_lidar[:3, 3], voxels, ground, config)
+    counts["stems"] = int(stem_of.max(initial=-1) + 1)
+    clock.lap("stems")
+
     # Euclidean clustering of the voxels clear of the ground; skirt voxels only join the
     # cluster they touch, so they can neither start a cluster nor bridge two.
     labels = np.full(len(voxels), -1, dtype=np.int64)
-    core_index = np.flatnonzero(core)
+    crown = core & (stem_of < 0)
+    core_index = np.flatnonzero(crown)
     labels[core_index] = euclidean_clusters(
         voxels[core_index], config.cluster.tolerance_m, config.cluster.method
     )
-    if not core.all():
-        labels[~core] = attach(
-            voxels[~core], voxels[core_index], labels[core_index], config.cluster.tolerance_m
+    loose = ~core & (stem_of < 0)
+    if loose.any():
+        labels[loose] = attach(
+            voxels[loose], voxels[core_index], labels[core_index], config.cluster.tolerance_m
         )
+    stemmed = stem_of >= 0
+    labels[stemmed] = labels.max(initial=-1) + 1 + stem_of[stemmed]
     labels, counts["split"] = split_at_trunks(labels, voxel_of, voxels, xyz, height, config.cluster)
     clusters_kept = _size_filter(labels, config.cluster)
     counts["clusters_dropped"] = int(labels.max(initial=-1) + 1 - len(clusters_kept))
     clock.lap("cluster")
 
-    lidar_xy = T_base_lidar[:2, 3]
     clusters = _features(
         clusters_kept, labels, voxel_of, voxels, xyz, ring, ndvi, ground, lidar_xy, config.classify
     )
@@ -398,12 +408,23 @@ def split_at_trunks(
     return labels, cut
 
 
-def _trunks(xy: np.ndarray, config: ClusterConfig) -> np.ndarray:
-    """Trunk centres among the trunk band's returns (x-y): blobs of returns 0.25 m apart
-    at most, no wider than `max_trunk_width_m`, at least `min_tree_spacing_m` from one
-    with more returns."""
+def _stems(xyz, height, ring, lidar_xyz, voxels, ground, config: DetectionConfig) -> np.ndarray:
+    """The stem (`pipeline.stems`) each voxel belongs to, -1 for none."""
+    cluster = config.cluster
+    if cluster.min_stem_height_m <= 0:
+        return np.full(len(voxels), -1, dtype=np.int64)
+    low, high = cluster.trunk_band_m
+    band = (height >= low) & (height <= high)
+    centres = np.array([centre for _, centre in _band_blobs(xyz[band, :2], cluster)])
+    stems = find_stems(xyz, height, ring, lidar_xyz, centres, cluster, config.classify)
+    return stem_of_voxels(voxels, ground.height(voxels), stems, cluster)
+
+
+def _band_blobs(xy: np.ndarray, config: ClusterConfig) -> list[tuple[int, np.ndarray]]:
+    """Blobs of the trunk band's returns (x-y) 0.25 m apart at most, no wider than
+    `max_trunk_width_m`: (returns, centre) of each. Trunks, posts and legs."""
     if len(xy) < config.min_trunk_points:
-        return np.zeros((0, 2))
+        return []
     blob = euclidean_clusters(np.column_stack([xy, np.zeros(len(xy))]), 0.25)
     found = []
     for b in np.unique(blob):
@@ -413,6 +434,13 @@ def _trunks(xy: np.ndarray, config: ClusterConfig) -> np.ndarray:
         if horizontal_extent(part) > config.max_trunk_width_m:
             continue  # a skirt hanging into the band, a weed: not a trunk
         found.append((len(part), part.mean(axis=0)))
+    return found
+
+
+def _trunks(xy: np.ndarray, config: ClusterConfig) -> np.ndarray:
+    """Trunk centres among the trunk band's returns (x-y): its blobs (`_band_blobs`), each
+    at least `min_tree_spacing_m` from one with more returns."""
+    found = _band_blobs(xy, config)
     # The best seen first: a blob of a few returns within a tree spacing of it gives way.
     found.sort(key=lambda item: -item[0])
     kept: list[np.ndarray] = []

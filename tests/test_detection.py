@@ -262,7 +262,7 @@ def test_a_near_and_a_far_tree_are_one_cluster_each(tree_scene):
 def test_stage_times_are_reported_when_asked(tree_scan):
     stage_ms: dict[str, float] = {}
     detect(tree_scan.points, None, DEFAULT_T_BASE_LIDAR, DetectionConfig(), stage_ms)
-    assert set(stage_ms) == {"crop", "ground", "ndvi_check", "voxel", "cluster", "features"}
+    assert set(stage_ms) == {"crop", "ground", "ndvi_check", "voxel", "stems", "cluster", "features"}
     assert all(v >= 0 for v in stage_ms.values())
 
 

@@ -1,0 +1,136 @@
+"""Posts, poles and people standing beside or between crowns: found in one scan and cut
+out before the crowns are clustered, so they can neither join a crown nor bridge two.
+
+A trellis post 0.5 m from a crown's edge, or a worker standing in the gap between two
+trees, is closer to the crowns than the clustering's reach (0.5 m, which must bridge
+the ring gaps of a far crown): without this cut the post widens the tree by a metre,
+and the person joins two trees into one cluster that no trunk cut can part (the legs
+are a trunk-sized blob between the two trunks).
+
+A stem is a smooth vertical column: a blob of returns in the trunk band (as a trunk
+is), over which returns stand without a gap, within a person's half-width of its axis,
+up to at least `min_stem_height_m`, and are smooth along the rings (`classify.roughness`:
+clothes, wood, concrete and steel are smooth, foliage is not). A tree's trunk passes
+the first test and fails the others: above a citrus trunk (0.35-0.6 m, where the skirt
+starts) the column holds either nothing (the crown's surface is farther out than a
+person's half-width) or foliage (a young tree's crown, its apex), which is rough.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from treetraits.pipeline.classify import roughness
+from treetraits.pipeline.config import ClassifyConfig, ClusterConfig
+
+# The VLP-16's rings are 2 deg apart: on an upright surface at range r they land
+# r tan(2 deg) apart in height. A column is continuous while its next return up is no
+# farther than this many ring gaps (a dropped return, the body's narrower neck), plus
+# the voxel's size.
+_RING_GAP_RAD = math.radians(2.0)
+_MISSED_RINGS = 1.5
+
+
+@dataclass(frozen=True)
+class Stem:
+    """One post, pole or person in a scan (`base`)."""
+
+    centre: np.ndarray  # (2,) x-y of its band blob
+    top_m: float  # the column's continuous top above the terrain
+    roughness: float  # m, of the column's returns above the trunk band
+
+
+def find_stems(
+    xyz: np.ndarray,
+    height: np.ndarray,
+    ring: np.ndarray,
+    lidar_xyz: np.ndarray,
+    blob_centres: np.ndarray,
+    config: ClusterConfig,
+    classify: ClassifyConfig,
+) -> list[Stem]:
+    """The stems among the trunk band's blobs (`blob_centres`, K x 2). `xyz` the scan's
+    returns clear of the ground (`base`), `height` above the terrain, `ring` each one's;
+    `lidar_xyz` the LiDAR's origin (`base`)."""
+    stems: list[Stem] = []
+    if len(xyz) == 0:
+        return stems
+    band_top = config.trunk_band_m[1]
+    lidar_xy = lidar_xyz[:2]
+    # The highest ring's elevation (+15 deg on a VLP-16, +10 on a Puck Hi-Res): a column
+    # near the robot runs out of the field of view before it reaches its top.
+    reach_all = np.hypot(xyz[:, 0] - lidar_xy[0], xyz[:, 1] - lidar_xy[1])
+    top_slope = float(np.max((xyz[:, 2] - lidar_xyz[2]) / np.maximum(reach_all, 0.1)))
+    for centre in blob_centres:
+        gap = np.hypot(xyz[:, 0] - centre[0], xyz[:, 1] - centre[1])
+        near = gap <= config.stem_radius_m
+        above = near & (height > band_top)
+        if not above.any():
+            continue
+        reach = float(np.hypot(*(centre - lidar_xy)))
+        top = column_top(height[above], band_top, max_gap_m(reach, config.voxel_m))
+        # What the sensor can see of a column here: up to its highest ring, less a ring
+        # gap (a post's top ring can fall beside it).
+        terrain_z = float(np.median(xyz[above, 2] - height[above]))
+        in_view = lidar_xyz[2] - terrain_z + reach * (top_slope - math.tan(_RING_GAP_RAD))
+        needed = min(config.min_stem_height_m, in_view)
+        # A column cut short by the field of view below a tree's least height proves
+        # nothing: a weed, a trunk and a person look alike that low.
+        if needed < classify.min_height_m or top < needed:
+            continue
+        # Judged above the skirts: there a tree's column is foliage, a post's still wood.
+        column = above & (height <= top) & (height >= config.stem_judged_from_m)
+        # Standing clear: a trunk's column is inside its crown and a weed under a skirt
+        # has the crown's side around it, where a post or a person has air.
+        around = (gap > config.stem_radius_m) & (gap <= config.stem_clearance_m)
+        around &= (height >= config.stem_judged_from_m) & (height <= top)
+        if around.sum() > config.max_stem_surround_share * column.sum():
+            continue
+        rough = roughness(xyz[column], ring[column], lidar_xy)
+        # Too few returns along the rings to say (NaN): not cut, a tree keeps its trunk.
+        if math.isfinite(rough) and rough < classify.min_roughness_m:
+            stems.append(Stem(np.asarray(centre, dtype=float), top, rough))
+    return stems
+
+
+def max_gap_m(reach_m: float, voxel_m: float) -> float:
+    """The largest height gap inside one upright column seen from `reach_m`."""
+    return _MISSED_RINGS * reach_m * math.tan(_RING_GAP_RAD) + voxel_m
+
+
+def column_top(heights: np.ndarray, start_m: float, max_gap: float) -> float:
+    """Climb from `start_m` through `heights` while no gap exceeds `max_gap`; the last
+    height reached (`start_m` when the first return is already too far up)."""
+    top = start_m
+    for h in np.sort(heights):
+        if h - top > max_gap:
+            break
+        top = max(top, float(h))
+    return top
+
+
+def stem_of_voxels(
+    voxels: np.ndarray, voxel_height: np.ndarray, stems: list[Stem], config: ClusterConfig
+) -> np.ndarray:
+    """Index of the stem each voxel belongs to (-1: none): within the column's radius
+    (plus half a voxel: centroids sit inside their cell) and no higher than its top
+    plus a voxel. The nearest stem wins where two columns overlap (a person's legs)."""
+    owner = np.full(len(voxels), -1, dtype=np.int64)
+    if not stems:
+        return owner
+    centres = np.stack([s.centre for s in stems])
+    tops = np.array([s.top_m for s in stems])
+    gaps = np.hypot(
+        voxels[:, None, 0] - centres[None, :, 0], voxels[:, None, 1] - centres[None, :, 1]
+    )
+    inside = (gaps <= config.stem_radius_m + config.voxel_m / 2) & (
+        voxel_height[:, None] <= tops[None, :] + config.voxel_m
+    )
+    gaps = np.where(inside, gaps, np.inf)
+    nearest = gaps.argmin(axis=1)
+    claimed = np.isfinite(gaps[np.arange(len(voxels)), nearest])
+    owner[claimed] = nearest[claimed]
+    return owner
