@@ -131,15 +131,22 @@ class SeasonStore:
         self.path = Path(path)
         if not create and not self.path.is_file():
             raise SeasonError(f"{self.path}: no such season store (batch writes one)")
-        self._db = sqlite3.connect(self.path, isolation_level=None)
+        # A reader (`create=False`: season, report) never writes; WAL lets it read while
+        # a batch is writing.
+        self._db = sqlite3.connect(self.path, isolation_level=None, timeout=30)
         try:
             self._db.execute("PRAGMA foreign_keys=ON")
-            if not create:
-                self._check()
-            self._db.executescript(SCHEMA)
-            self._db.execute(
-                "INSERT OR IGNORE INTO season VALUES ('schema_version', ?)", (SCHEMA_VERSION,)
-            )
+            if create:
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.executescript(SCHEMA)
+                self._db.execute(
+                    "INSERT OR IGNORE INTO season VALUES ('schema_version', ?)",
+                    (SCHEMA_VERSION,),
+                )
+            self._check()
+        except sqlite3.OperationalError:  # locked, unreadable: the system's words (exit 6)
+            self._db.close()
+            raise
         except sqlite3.DatabaseError as exc:
             self._db.close()
             raise SeasonError(f"{self.path}: not a season store ({exc})") from exc
