@@ -49,7 +49,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         type=int,
         default=2,
         help="processes of the local Dask cluster, one replay each at a time (default 2; "
-        "each takes about 1 GB of memory)",
+        "more than the machine's cores only slows each replay down)",
     )
     batch.add_argument(
         "--scheduler",
@@ -150,9 +150,12 @@ def run(args: argparse.Namespace) -> int:
                         bar.write(f"treetraits: error: {name}: {error}", file=sys.stderr)
                     bar.update()
 
-                b.run_batch(items, client, config, on_result)
-            if changed:
-                season.relink(args.block, gate)
+                try:
+                    b.run_batch(items, client, config, on_result)
+                finally:
+                    # Also after Ctrl-C: the surveys committed so far are linked.
+                    if changed:
+                        season.relink(args.block, gate)
         trees = len(season.trees())
 
     for name in outcome.damaged:
