@@ -126,7 +126,7 @@ def link_surveys(
     season tree this survey did not claim is missing in it when it lies where the survey
     looked (`within_extent` of its found trees, grown by `gate_m`); elsewhere the survey
     says nothing of it. Found trees with no UTM position (seen only in `odom`) cannot be
-    linked and are left out. `taken_ids`: ids other blocks use, not given to new trees."""
+    linked and are left out. `taken_ids`: ids not to give to new trees."""
     trees: list[LinkedTree] = []
     by_field: dict[str, LinkedTree] = {}
     used = set(taken_ids)

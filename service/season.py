@@ -45,13 +45,14 @@ CREATE TABLE IF NOT EXISTS survey_trees (
 );
 CREATE INDEX IF NOT EXISTS survey_trees_survey ON survey_trees (survey_id);
 CREATE TABLE IF NOT EXISTS trees (
-    tree_id TEXT PRIMARY KEY,        -- the field id, else pos-N (linked by position)
+    tree_id TEXT NOT NULL,           -- the field id, else pos-N (linked by position)
     block TEXT NOT NULL,
     field_id TEXT, row TEXT,
-    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL  -- mean of its finds
+    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,  -- mean of its finds
+    PRIMARY KEY (block, tree_id)     -- blocks' field maps may share ids (T1 in each)
 );
 CREATE TABLE IF NOT EXISTS tree_surveys (
-    tree_id TEXT NOT NULL REFERENCES trees (tree_id) ON DELETE CASCADE,
+    tree_id TEXT NOT NULL,           -- in the survey's block
     survey_id INTEGER NOT NULL REFERENCES surveys (survey_id) ON DELETE CASCADE,
     status TEXT NOT NULL,            -- found or missing
     run_tree_id TEXT,
@@ -249,12 +250,14 @@ class SeasonStore:
             (block,),
         ).fetchall()
         per_survey = [(sid, self._survey_trees(sid)) for (sid,) in surveys]
-        taken = {
-            r[0] for r in self._db.execute("SELECT tree_id FROM trees WHERE block != ?", (block,))
-        }
-        linked = link_surveys(per_survey, gate_m, taken)
+        linked = link_surveys(per_survey, gate_m)
         with self._transaction():
             self._db.execute("DELETE FROM trees WHERE block = ?", (block,))
+            self._db.execute(
+                "DELETE FROM tree_surveys WHERE survey_id IN "
+                "(SELECT survey_id FROM surveys WHERE block = ?)",
+                (block,),
+            )
             for tree in linked:
                 self._db.execute(
                     "INSERT INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -332,24 +335,25 @@ class SeasonStore:
         return [dict(zip(keys, r, strict=True)) for r in rows]
 
     def trees(self, tree_id: str | None = None) -> list[SeasonTree]:
-        """Every season tree (or the one `tree_id`) with its surveys in date order."""
+        """Every season tree (or those with `tree_id`, one per block that has it) with its
+        surveys in date order."""
         where, params = ("WHERE t.tree_id = ?", (tree_id,)) if tree_id is not None else ("", ())
         trees = self._db.execute(
             "SELECT tree_id, block, field_id, row, easting, northing, utm_zone, lat, lon "
             f"FROM trees t {where} ORDER BY block, tree_id",
             params,
         ).fetchall()
-        visits: dict[str, list[TreeVisit]] = {t[0]: [] for t in trees}
+        visits: dict[tuple[str, str], list[TreeVisit]] = {(t[1], t[0]): [] for t in trees}
         rows = self._db.execute(
-            "SELECT v.tree_id, v.survey_id, s.t_start, s.recording, v.status, v.run_tree_id, "
-            "v.easting, v.northing, v.lat, v.lon, v.width_m, v.height_m, v.ndvi, "
+            "SELECT s.block, v.tree_id, v.survey_id, s.t_start, s.recording, v.status, "
+            "v.run_tree_id, v.easting, v.northing, v.lat, v.lon, v.width_m, v.height_m, v.ndvi, "
             f"v.observations FROM tree_surveys v JOIN surveys s USING (survey_id) "
             f"{where.replace('t.', 'v.')} ORDER BY s.t_start, v.survey_id",
             params,
         ).fetchall()
         for r in rows:
-            visits[r[0]].append(TreeVisit(*r[1:]))
-        return [SeasonTree(*t, visits=visits[t[0]]) for t in trees]
+            visits[(r[0], r[1])].append(TreeVisit(*r[2:]))
+        return [SeasonTree(*t, visits=visits[(t[1], t[0])]) for t in trees]
 
     # --- plumbing -----------------------------------------------------------------------
 

@@ -327,3 +327,22 @@ def test_no_scheduler_there_is_a_clear_error(tmp_path, capsys):
     )
     assert status == 2
     assert "cannot connect" in capsys.readouterr().err
+
+
+def test_a_cut_recording_is_reported_and_kept_as_far_as_it_reads(recordings, tmp_path, capsys):
+    cut = tmp_path / "cut.mcap"
+    data = recordings[0].read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    season = tmp_path / "cut.sqlite"
+    argv = ["batch", str(cut), "--season", str(season), "--workers", "1", "--json"]
+    status = main(argv)
+    captured = capsys.readouterr()
+    assert status == 3
+    assert json.loads(captured.out)["damaged"] == [str(cut)]
+    assert "damaged or cut" in captured.err
+    with SeasonStore(season, create=False) as store:
+        (survey,) = store.surveys()
+    assert survey.data_loss and survey.summary["truncated"] is True
+    # Kept in the season: a rerun skips it like any other recording.
+    assert main(argv) == 0
+    assert json.loads(capsys.readouterr().out)["skipped"] == [str(cut)]

@@ -171,6 +171,22 @@ def test_a_recording_processed_again_replaces_its_survey(tmp_path):
     assert db.execute("SELECT COUNT(*) FROM survey_trees").fetchone()[0] == 1
 
 
+def test_two_blocks_may_share_field_ids(tmp_path, capsys):
+    with SeasonStore(tmp_path / "season.sqlite") as store:
+        for block, width in (("north", 2.0), ("south", 3.0)):
+            add(store, block, T0, [tree("1", *GRID[0], width=width, field_id="T1")], block)
+            store.relink(block, DEFAULT_LINK_GATE_M)
+        trees = store.trees()
+    assert [(t.block, t.tree_id, [v.width_m for v in t.visits]) for t in trees] == [
+        ("north", "T1", [2.0]),
+        ("south", "T1", [3.0]),
+    ]
+    assert (
+        main(["season", "tree", "T1", "--season", str(tmp_path / "season.sqlite"), "--json"]) == 0
+    )
+    assert [t["block"] for t in json.loads(capsys.readouterr().out)["trees"]] == ["north", "south"]
+
+
 def test_season_cli_json_export_and_errors(tmp_path, capsys):
     path = tmp_path / "season.sqlite"
     with SeasonStore(path) as store:

@@ -46,11 +46,9 @@ def run(args: argparse.Namespace) -> int:
         raise SeasonError(f"{args.season}: no tree {args.tree_id!r} (`season trees` lists them)")
     if args.json:
         document = season_trees_json(trees)
-        print(
-            json.dumps(
-                document["trees"][0] if args.season_command == "tree" else document, indent=1
-            )
-        )
+        # `tree ID`: that tree's object; an id in several blocks (their maps' T1): all of them.
+        single = args.season_command == "tree" and len(trees) == 1
+        print(json.dumps(document["trees"][0] if single else document, indent=1))
         return 0
     print(format_history(trees))
     return 0
