@@ -18,8 +18,19 @@ def register(commands: argparse._SubParsersAction) -> None:
         ),
     )
     sub = season.add_subparsers(dest="season_command", metavar="SUBCOMMAND", required=True)
-    trees = sub.add_parser("trees", help="every tree with its surveys and traits over time")
-    tree = sub.add_parser("tree", help="one tree's history")
+    trees = sub.add_parser(
+        "trees",
+        help="every tree with its surveys and traits over time",
+        description="Every tree of the season with its surveys by date: found (width, "
+        'height, NDVI) or missing. --json: {"trees": [{"id": ..., "surveys": '
+        '[{"date": ..., "width_m": ...}]}]} (docs/season.md).',
+    )
+    tree = sub.add_parser(
+        "tree",
+        help="one tree's history",
+        description="One tree's surveys by date (its field id, or pos-N for a tree "
+        "linked by position).",
+    )
     tree.add_argument("tree_id", metavar="ID", help="the tree's season id (field id or pos-N)")
     export = sub.add_parser(
         "export",
