@@ -19,6 +19,8 @@ DEMO_OUT := out/demo
 # OpenCV) and what building systemd-python needs (libsystemd headers, pkg-config, a C
 # compiler and the Python headers).
 SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libgomp1 libsystemd-dev pkg-config gcc systemd
+# Only for `make test`: tests/test_batch.py renders the HTML report in a real browser.
+TEST_PACKAGES := chromium
 
 .PHONY: help setup system-packages demo test lint bench clean install uninstall
 
@@ -42,7 +44,7 @@ system-packages:
 		exit 0; \
 	fi; \
 	ver=$$($(PYTHON) -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")'); \
-	wanted="$(SYSTEM_PACKAGES)"; \
+	wanted="$(SYSTEM_PACKAGES) $(EXTRA_PACKAGES)"; \
 	$(PYTHON) -c 'import ensurepip, venv' 2>/dev/null || wanted="$$wanted python$$ver-venv"; \
 	$(PYTHON) -c 'import sysconfig, os, sys; \
 		sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
@@ -72,6 +74,7 @@ demo: setup
 	$(BIN)/treetraits sim --grid 5x5 --path straight --seed 0 --out $(DEMO_OUT)/survey.mcap --force
 	$(BIN)/treetraits replay $(DEMO_OUT)/survey.mcap --out $(DEMO_OUT) --force
 
+test: EXTRA_PACKAGES := $(TEST_PACKAGES)
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest

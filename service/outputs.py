@@ -192,6 +192,15 @@ class RunWriter:
         passed, _ = cKDTree(xy).query(index.xy)
         return missing_trees(index, found, passed, self.missing_range_m)
 
+    def path_utm(self) -> list[list[float]]:
+        """The robot's path so far in UTM (easting, northing; cm), one point per metre
+        driven: the run fact `path`, which `treetraits report` draws under the trees."""
+        grid = self.processor.localizer.grid
+        if grid is None or not self._path:
+            return []
+        path = georeference(self._path, grid, (), utm_from_odom=self.processor.utm_from_odom)
+        return [[round(p.easting, 2), round(p.northing, 2)] for p in path if p.easting is not None]
+
     def _index(self) -> FieldMapIndex | None:
         """The field map in the run's UTM grid, built once per grid."""
         grid = self.processor.localizer.grid

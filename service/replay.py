@@ -352,6 +352,8 @@ def run_replay(
             **source.integrity(),
         )
         writer.set_facts(summary)
+        # Not in the summary (it is printed): the path for `treetraits report`'s map.
+        writer.set_facts({"path": writer.path_utm()})
     finally:
         writer.close()
     return ReplayReport(summary, trees, out_dir, exported.missing, exported.rejected)

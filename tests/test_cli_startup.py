@@ -12,7 +12,10 @@ import pytest
 
 from treetraits.cli import build_parser
 
-HEAVY = ("open3d", "scipy", "filterpy", "cv2", "pyproj", "mcap", "numpy", "matplotlib")
+HEAVY = (
+    "open3d", "scipy", "filterpy", "cv2", "pyproj", "mcap", "numpy", "matplotlib", "dask",
+    "distributed",
+)  # fmt: skip
 
 
 def imported_modules(*args: str) -> set[str]:

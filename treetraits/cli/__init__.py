@@ -22,6 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
     # The commands are imported here, inside main's error boundary: their imports (NumPy,
     # Open3D, OpenCV...) take seconds, and Ctrl-C then must not end in a traceback.
     from treetraits.cli import (
+        batch,
         calibrate,
         camera,
         config,
@@ -34,7 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
         play,
         record,
         replay,
+        report,
         run,
+        season,
         sim,
     )
 
@@ -61,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     play.register(commands)
     doctor.register(commands)
     eval.register(commands)
+    batch.register(commands)
+    season.register(commands)
+    report.register(commands)
     return parser
 
 

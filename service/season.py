@@ -1,0 +1,431 @@
+"""The season store: one SQLite file holding every survey of a season and each tree's
+history across them (docs/season.md).
+
+Written by one process only (the `treetraits batch` client): no concurrent writers. The
+runs' own trees are kept as they came (`survey_trees`); which tree of one survey is which
+tree of another is derived from them (`trees`, `tree_surveys`) by `relink`, rebuilt for a
+whole block in date order each time a survey is added or replaced, so the result does not
+depend on the order the recordings were processed in.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from treetraits.drivers.records import Tree
+from treetraits.errors import TreetraitsError
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS season (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS surveys (
+    survey_id INTEGER PRIMARY KEY,
+    block TEXT NOT NULL,
+    recording TEXT NOT NULL,         -- the path the batch was given
+    fingerprint TEXT NOT NULL,       -- the recording's content (`recording_fingerprint`)
+    t_start INTEGER NOT NULL,        -- the recording's first message, ns since the epoch
+    software TEXT NOT NULL,          -- "treetraits X.Y.Z"
+    config_key TEXT NOT NULL,        -- sha256 of the pipeline config the run used
+    run_dir TEXT NOT NULL,           -- the run's outputs (traits.sqlite, trees.csv...)
+    data_loss INTEGER NOT NULL,      -- 1: a damaged or cut recording, read as far as it went
+    summary TEXT NOT NULL,           -- the replay's summary, JSON
+    processed_at TEXT NOT NULL,
+    UNIQUE (block, fingerprint)
+);
+CREATE TABLE IF NOT EXISTS survey_trees (
+    survey_id INTEGER NOT NULL REFERENCES surveys (survey_id) ON DELETE CASCADE,
+    run_tree_id TEXT NOT NULL,       -- the tree's id in its run ("" for a missing tree)
+    status TEXT NOT NULL,            -- found, or missing (a field-map tree passed, not found)
+    field_id TEXT, row TEXT,
+    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
+    width_m REAL, height_m REAL, ndvi REAL, observations INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS survey_trees_survey ON survey_trees (survey_id);
+CREATE TABLE IF NOT EXISTS trees (
+    tree_id TEXT NOT NULL,           -- the field id, else pos-N (linked by position)
+    block TEXT NOT NULL,
+    field_id TEXT, row TEXT,
+    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,  -- mean of its finds
+    PRIMARY KEY (block, tree_id)     -- blocks' field maps may share ids (T1 in each)
+);
+CREATE TABLE IF NOT EXISTS tree_surveys (
+    tree_id TEXT NOT NULL,           -- in the survey's block
+    survey_id INTEGER NOT NULL REFERENCES surveys (survey_id) ON DELETE CASCADE,
+    status TEXT NOT NULL,            -- found or missing
+    run_tree_id TEXT,
+    easting REAL, northing REAL, lat REAL, lon REAL,
+    width_m REAL, height_m REAL, ndvi REAL, observations INTEGER,
+    PRIMARY KEY (tree_id, survey_id)
+);
+CREATE TABLE IF NOT EXISTS failures (
+    recording TEXT NOT NULL, block TEXT NOT NULL, software TEXT NOT NULL,
+    config_key TEXT NOT NULL, error TEXT NOT NULL, at TEXT NOT NULL
+);
+"""
+
+SCHEMA_VERSION = "1"
+
+
+class SeasonError(TreetraitsError):
+    """A season store that cannot be used (not one, a newer schema), or an unknown tree."""
+
+
+@dataclass(frozen=True)
+class Survey:
+    """One processed recording, as the season keeps it."""
+
+    block: str
+    recording: str
+    fingerprint: str
+    t_start: int
+    software: str
+    config_key: str
+    run_dir: str
+    data_loss: bool
+    summary: dict = field(default_factory=dict)
+    survey_id: int | None = None
+
+
+@dataclass(frozen=True)
+class TreeVisit:
+    """One tree in one survey."""
+
+    survey_id: int
+    t_start: int
+    recording: str
+    status: str  # found or missing
+    run_tree_id: str | None
+    easting: float | None
+    northing: float | None
+    lat: float | None
+    lon: float | None
+    width_m: float | None
+    height_m: float | None
+    ndvi: float | None
+    observations: int | None
+
+
+@dataclass(frozen=True)
+class SeasonTree:
+    """One tree of the season with its surveys in date order."""
+
+    tree_id: str
+    block: str
+    field_id: str | None
+    row: str | None
+    easting: float | None
+    northing: float | None
+    utm_zone: str | None
+    lat: float | None
+    lon: float | None
+    visits: list[TreeVisit]
+
+
+class SeasonStore:
+    """The season file. `with SeasonStore(path) as season: ...`; every change is one
+    transaction."""
+
+    def __init__(self, path: str | Path, *, create: bool = True):
+        self.path = Path(path)
+        if not create and not self.path.is_file():
+            raise SeasonError(f"{self.path}: no such season store (batch writes one)")
+        # A reader (`create=False`: season, report) never writes; WAL lets it read while
+        # a batch is writing.
+        self._db = sqlite3.connect(self.path, isolation_level=None, timeout=30)
+        try:
+            self._db.execute("PRAGMA foreign_keys=ON")
+            if create:
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.executescript(SCHEMA)
+                self._db.execute(
+                    "INSERT OR IGNORE INTO season VALUES ('schema_version', ?)",
+                    (SCHEMA_VERSION,),
+                )
+            self._check()
+        except sqlite3.OperationalError:  # locked, unreadable: the system's words (exit 6)
+            self._db.close()
+            raise
+        except sqlite3.DatabaseError as exc:
+            self._db.close()
+            raise SeasonError(f"{self.path}: not a season store ({exc})") from exc
+        except BaseException:
+            self._db.close()
+            raise
+
+    def _check(self) -> None:
+        tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master")}
+        if not {"season", "surveys", "trees", "tree_surveys"} <= tables:
+            raise SeasonError(f"{self.path}: not a season store (no surveys or trees tables)")
+        version = self._db.execute(
+            "SELECT value FROM season WHERE key = 'schema_version'"
+        ).fetchone()
+        if version is None or version[0] != SCHEMA_VERSION:
+            raise SeasonError(
+                f"{self.path}: season schema {version and version[0]!r}, this treetraits "
+                f"reads {SCHEMA_VERSION!r}"
+            )
+
+    # --- writing (the batch client) -----------------------------------------------------
+
+    def processed(self, block: str, fingerprint: str, software: str, config_key: str) -> bool:
+        """Whether this recording is in the season, processed by this software and config."""
+        row = self._db.execute(
+            "SELECT 1 FROM surveys WHERE block = ? AND fingerprint = ? AND software = ? "
+            "AND config_key = ?",
+            (block, fingerprint, software, config_key),
+        ).fetchone()
+        return row is not None
+
+    def add_survey(self, survey: Survey, trees: Iterable[Tree], processed_at: str) -> int:
+        """Add a survey and its run's trees (found and missing), replacing an earlier
+        processing of the same recording in the same block. Returns its id; call `relink`
+        for its block afterwards."""
+        with self._transaction():
+            self._db.execute(
+                "DELETE FROM surveys WHERE block = ? AND fingerprint = ?",
+                (survey.block, survey.fingerprint),
+            )
+            cursor = self._db.execute(
+                "INSERT INTO surveys (block, recording, fingerprint, t_start, software, "
+                "config_key, run_dir, data_loss, summary, processed_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    survey.block,
+                    survey.recording,
+                    survey.fingerprint,
+                    survey.t_start,
+                    survey.software,
+                    survey.config_key,
+                    survey.run_dir,
+                    int(survey.data_loss),
+                    json.dumps(survey.summary),
+                    processed_at,
+                ),
+            )
+            survey_id = int(cursor.lastrowid)
+            self._db.executemany(
+                "INSERT INTO survey_trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                [
+                    (
+                        survey_id,
+                        t.tree_id or "",
+                        t.status,
+                        t.field_id,
+                        t.row,
+                        t.easting,
+                        t.northing,
+                        t.utm_zone,
+                        t.lat,
+                        t.lon,
+                        _real(t.width_m),
+                        _real(t.height_m),
+                        _real(t.ndvi),
+                        t.observations,
+                    )
+                    for t in trees
+                    if t.status in ("found", "missing")
+                ],
+            )
+        return survey_id
+
+    def add_failure(
+        self, recording: str, block: str, software: str, config_key: str, error: str, at: str
+    ) -> None:
+        with self._transaction():
+            self._db.execute(
+                "INSERT INTO failures VALUES (?, ?, ?, ?, ?, ?)",
+                (recording, block, software, config_key, error, at),
+            )
+
+    def relink(self, block: str, gate_m: float) -> None:
+        """Rebuild the block's season trees and their links from its surveys' trees, in
+        date order (pipeline/linking.py; docs/season.md)."""
+        from treetraits.pipeline.linking import link_surveys
+
+        surveys = self._db.execute(
+            "SELECT survey_id FROM surveys WHERE block = ? ORDER BY t_start, survey_id",
+            (block,),
+        ).fetchall()
+        per_survey = [(sid, self._survey_trees(sid)) for (sid,) in surveys]
+        linked = link_surveys(per_survey, gate_m)
+        with self._transaction():
+            self._db.execute("DELETE FROM trees WHERE block = ?", (block,))
+            self._db.execute(
+                "DELETE FROM tree_surveys WHERE survey_id IN "
+                "(SELECT survey_id FROM surveys WHERE block = ?)",
+                (block,),
+            )
+            for tree in linked:
+                self._db.execute(
+                    "INSERT INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (tree.tree_id, block, tree.field_id, tree.row, *tree.position()),
+                )
+                self._db.executemany(
+                    "INSERT INTO tree_surveys VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    [
+                        (
+                            tree.tree_id,
+                            survey_id,
+                            status,
+                            t.tree_id or None,
+                            t.easting,
+                            t.northing,
+                            t.lat,
+                            t.lon,
+                            _real(t.width_m),
+                            _real(t.height_m),
+                            _real(t.ndvi),
+                            t.observations,
+                        )
+                        for survey_id, status, t in tree.visits
+                    ],
+                )
+
+    def _survey_trees(self, survey_id: int) -> list[Tree]:
+        rows = self._db.execute(
+            "SELECT run_tree_id, easting, northing, utm_zone, lat, lon, width_m, height_m, "
+            "ndvi, observations, field_id, row, status FROM survey_trees WHERE survey_id = ? "
+            "ORDER BY rowid",
+            (survey_id,),
+        ).fetchall()
+        return [
+            Tree(
+                r[0],
+                r[1],
+                r[2],
+                r[3],
+                r[4],
+                r[5],
+                _nan(r[6]),
+                _nan(r[7]),
+                r[8],
+                r[9],
+                None,
+                None,
+                r[10],
+                r[11],
+                r[12],
+            )
+            for r in rows
+        ]
+
+    # --- reading ------------------------------------------------------------------------
+
+    def blocks(self) -> list[str]:
+        return [r[0] for r in self._db.execute("SELECT DISTINCT block FROM surveys ORDER BY 1")]
+
+    def surveys(self) -> list[Survey]:
+        rows = self._db.execute(
+            "SELECT block, recording, fingerprint, t_start, software, config_key, run_dir, "
+            "data_loss, summary, survey_id FROM surveys ORDER BY t_start, survey_id"
+        ).fetchall()
+        return [
+            Survey(r[0], r[1], r[2], r[3], r[4], r[5], r[6], bool(r[7]), json.loads(r[8]), r[9])
+            for r in rows
+        ]
+
+    def failures(self) -> list[dict]:
+        rows = self._db.execute(
+            "SELECT recording, block, software, config_key, error, at FROM failures"
+        ).fetchall()
+        keys = ("recording", "block", "software", "config_key", "error", "at")
+        return [dict(zip(keys, r, strict=True)) for r in rows]
+
+    def trees(self, tree_id: str | None = None) -> list[SeasonTree]:
+        """Every season tree (or those with `tree_id`, one per block that has it) with its
+        surveys in date order."""
+        where, params = ("WHERE t.tree_id = ?", (tree_id,)) if tree_id is not None else ("", ())
+        trees = self._db.execute(
+            "SELECT tree_id, block, field_id, row, easting, northing, utm_zone, lat, lon "
+            f"FROM trees t {where} ORDER BY block, tree_id",
+            params,
+        ).fetchall()
+        visits: dict[tuple[str, str], list[TreeVisit]] = {(t[1], t[0]): [] for t in trees}
+        rows = self._db.execute(
+            "SELECT s.block, v.tree_id, v.survey_id, s.t_start, s.recording, v.status, "
+            "v.run_tree_id, v.easting, v.northing, v.lat, v.lon, v.width_m, v.height_m, v.ndvi, "
+            f"v.observations FROM tree_surveys v JOIN surveys s USING (survey_id) "
+            f"{where.replace('t.', 'v.')} ORDER BY s.t_start, v.survey_id",
+            params,
+        ).fetchall()
+        for r in rows:
+            visits[(r[0], r[1])].append(TreeVisit(*r[2:]))
+        return [SeasonTree(*t, visits=visits[(t[1], t[0])]) for t in trees]
+
+    # --- plumbing -----------------------------------------------------------------------
+
+    def _transaction(self):
+        return _Transaction(self._db)
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> SeasonStore:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class _Transaction:
+    def __init__(self, db: sqlite3.Connection):
+        self.db = db
+
+    def __enter__(self) -> None:
+        self.db.execute("BEGIN IMMEDIATE")
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.db.execute("COMMIT")
+        elif self.db.in_transaction:
+            self.db.execute("ROLLBACK")
+
+
+def _real(value: float | None) -> float | None:
+    """NULL for an unmeasured trait (NaN)."""
+    return None if value is None or value != value else float(value)
+
+
+def _nan(value: float | None) -> float:
+    return float("nan") if value is None else value
+
+
+def season_trees_json(trees: Sequence[SeasonTree]) -> dict:
+    """`season trees --json`: {"trees": [{"id": ..., "surveys": [{"date": ..., ...}]}]}."""
+    from treetraits.pipeline.georef import iso_utc
+
+    def visit(v: TreeVisit) -> dict:
+        return {
+            "date": iso_utc(v.t_start),
+            "survey": v.survey_id,
+            "recording": v.recording,
+            "status": v.status,
+            "width_m": _round(v.width_m, 3),
+            "height_m": _round(v.height_m, 3),
+            "ndvi": _round(v.ndvi, 4),
+            "lat": _round(v.lat, 8),
+            "lon": _round(v.lon, 8),
+            "run_tree_id": v.run_tree_id,
+        }
+
+    return {
+        "trees": [
+            {
+                "id": t.tree_id,
+                "block": t.block,
+                "field_id": t.field_id,
+                "row": t.row,
+                "lat": _round(t.lat, 8),
+                "lon": _round(t.lon, 8),
+                "surveys": [visit(v) for v in t.visits],
+            }
+            for t in trees
+        ]
+    }
+
+
+def _round(value: float | None, decimals: int) -> float | None:
+    return None if value is None else round(float(value), decimals)

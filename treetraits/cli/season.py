@@ -1,0 +1,108 @@
+"""`treetraits season`: the trees of a season store and their history (docs/season.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    season = commands.add_parser(
+        "season",
+        help="list, show and export the trees of a season store",
+        description=(
+            "Read a season store that `treetraits batch` wrote: every tree with its surveys "
+            "(trees), one tree's history (tree ID), or the season as a long CSV and a "
+            "GeoJSON with each tree's growth (export)."
+        ),
+    )
+    sub = season.add_subparsers(dest="season_command", metavar="SUBCOMMAND", required=True)
+    trees = sub.add_parser(
+        "trees",
+        help="every tree with its surveys and traits over time",
+        description="Every tree of the season with its surveys by date: found (width, "
+        'height, NDVI) or missing. --json: {"trees": [{"id": ..., "surveys": '
+        '[{"date": ..., "width_m": ...}]}]} (docs/season.md).',
+    )
+    tree = sub.add_parser(
+        "tree",
+        help="one tree's history",
+        description="One tree's surveys by date (its field id, or pos-N for a tree "
+        "linked by position).",
+    )
+    tree.add_argument("tree_id", metavar="ID", help="the tree's season id (field id or pos-N)")
+    export = sub.add_parser(
+        "export",
+        help="write DIR/season.csv (one line per tree and survey) and DIR/season.geojson "
+        "(per-tree growth)",
+    )
+    export.add_argument("--out", required=True, type=Path, help="output directory")
+    export.add_argument("--force", action="store_true", help="replace an earlier export in DIR")
+    for command in (trees, tree, export):
+        command.add_argument("--season", required=True, type=Path, help="season store (SQLite)")
+    for command in (trees, tree):
+        command.add_argument("--json", action="store_true", help="print as JSON")
+    season.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from treetraits.service.season import SeasonError, SeasonStore, season_trees_json
+
+    with SeasonStore(args.season, create=False) as season:
+        if args.season_command == "export":
+            return _export(args, season)
+        trees = season.trees(args.tree_id if args.season_command == "tree" else None)
+    if args.season_command == "tree" and not trees:
+        raise SeasonError(f"{args.season}: no tree {args.tree_id!r} (`season trees` lists them)")
+    if args.json:
+        document = season_trees_json(trees)
+        # `tree ID`: that tree's object; an id in several blocks (their maps' T1): all of them.
+        single = args.season_command == "tree" and len(trees) == 1
+        print(json.dumps(document["trees"][0] if single else document, indent=1))
+        return 0
+    print(format_history(trees))
+    return 0
+
+
+def _export(args: argparse.Namespace, season) -> int:
+    from treetraits.service.outdir import OutputDir
+    from treetraits.service.season_export import (
+        CSV_NAME,
+        EXPORT_OUTPUTS,
+        GEOJSON_NAME,
+        write_season_csv,
+        write_season_geojson,
+    )
+
+    output = OutputDir(
+        args.out, EXPORT_OUTPUTS, force=args.force, inputs=(args.season,), what="an earlier export"
+    )
+    trees = season.trees()
+    with output as staging:
+        write_season_csv(staging / CSV_NAME, trees)
+        write_season_geojson(staging / GEOJSON_NAME, trees)
+    print(f"{len(trees)} trees: {args.out / CSV_NAME}, {args.out / GEOJSON_NAME}")
+    return 0
+
+
+def format_history(trees) -> str:
+    """One block of lines per tree: its surveys by date with the traits measured."""
+    from treetraits.pipeline.georef import iso_utc
+
+    def cell(value, fmt: str) -> str:
+        return "-" if value is None else format(value, fmt)
+
+    lines = []
+    for t in trees:
+        where = f"{t.lat:.7f}, {t.lon:.7f}" if t.lat is not None else "no position"
+        lines.append(f"{t.tree_id}  block {t.block}  row {t.row or '-'}  ({where})")
+        for v in t.visits:
+            traits = (
+                "missing"
+                if v.status == "missing"
+                else f"width {cell(v.width_m, '.2f')} m  height {cell(v.height_m, '.2f')} m  "
+                f"NDVI {cell(v.ndvi, '.2f')}"
+            )
+            lines.append(f"  {iso_utc(v.t_start)[:16]}  survey {v.survey_id}  {traits}")
+    return "\n".join(lines) if lines else "no trees in this season"
