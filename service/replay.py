@@ -313,6 +313,8 @@ def run_replay(
         "method": cfg.pipeline.method,
         "traits": cfg.traits.method,
         "calibration": calibration.to_json(),
+        # What took the format's default (no camera: no NDVI), said, never silent.
+        "calibration_defaults": list(calibration.defaults),
     }
     writer = RunWriter(out_dir, processor, field_map, cfg.output, facts=summary)
     next_export = None

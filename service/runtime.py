@@ -210,6 +210,8 @@ class Service:
         self._stamp = utc_stamp()
         self._check_devices()
         calibration = self._calibration()
+        if calibration.describe_defaults():
+            log.warning("%s", calibration.describe_defaults())
         field_map, field_map_bytes = self._field_map()
         self.workers = self._make_workers()
         if self.process:

@@ -127,6 +127,9 @@ def run(args: argparse.Namespace) -> int:
         inputs=(args.input, args.nmea, args.calibration, args.field_map, args.config),
     )
     inputs = open_replay(args.input, options)
+    defaulted = inputs.calibration.describe_defaults()
+    if defaulted:
+        print(f"treetraits: note: {defaulted}", file=sys.stderr)
     start = time.perf_counter()
     try:
         # Progress in bytes of sensor data (a recording is compressed: no total to show).
