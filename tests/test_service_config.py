@@ -136,7 +136,9 @@ def test_config_dump_and_check_commands(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert load_config(write(tmp_path, printed)).gnss.port == "/dev/ttyUSB3"
     assert 'port = "/dev/ttyUSB3"' in printed and "[queues]" in printed
+    # check also sees that output.dir can be written (as run's start does).
+    path = write(tmp_path, f"[gnss]\nport = '/dev/ttyUSB3'\n[output]\ndir = '{tmp_path}'\n")
     assert cli(["config", "check", str(path)]) == 0
-    assert capsys.readouterr().out.strip() == f"{path}: ok"
+    assert capsys.readouterr().out.splitlines()[0] == f"{path}: ok"
     with pytest.raises(ConfigError, match=r"gnss\.baudrate must be in \[50, 4000000\]"):
         cli(["config", "check", str(write(tmp_path, "[gnss]\nbaudrate = -1\n"))])
