@@ -133,6 +133,8 @@ class Service:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._signals = 0
+        self._stopped_by: str | None = None  # "SIGTERM", "SIGINT": the signal that stopped it
+        self._export_failed = False  # the last export did not go through
 
     # --- start ---------------------------------------------------------------------------
 
@@ -336,8 +338,15 @@ class Service:
         self.counters.scans += 1
 
     def _export(self) -> None:
-        if not self._attempt("export", self.writer.export):
+        self._export_failed = not self._attempt("export", self.writer.export)
+        if self._export_failed:
             self.counters.export_failures += 1
+
+    def end_state(self) -> str:
+        """How the run ended, as the store's `end` fact and the summary say it:
+        "interrupted (SIGTERM)" after a signal, "stopped" when asked from the code; a run
+        killed outright keeps the "running" it started with."""
+        return f"interrupted ({self._stopped_by})" if self._stopped_by else "stopped"
 
     def _attempt(self, kind: str, action, consequence: str = "") -> bool:
         """Run an output step; an OutputError is logged once while it lasts and shown in
@@ -402,6 +411,7 @@ class Service:
         self._signals += 1
         if self._signals > 1:
             os._exit(128 + signum)  # asked twice: no more flushing
+        self._stopped_by = signal.Signals(signum).name
         self._stop.set()
         self._wake.set()
 
@@ -435,6 +445,7 @@ class Service:
             if not worker.join(JOIN_S):
                 log.warning("%s: receive thread still busy at exit", worker.name)
         summary = dict(self._numbers(), messages=self.counters.messages)
+        summary["end"] = self.end_state()
         summary["store_failures"] = self.counters.store_failures
         summary["run_s"] = round(time.monotonic() - begun, 2)
         log.info("stopped: %s", json.dumps(summary))
@@ -468,6 +479,10 @@ class Service:
             "fixes": processor.stats.fixes,
             "frames": processor.stats.frames,
             "stopped": utc_stamp(),
+            "end": self.end_state(),
+            # The exports were rewritten from the store's trees after the last scan, so
+            # they hold what it holds; if that failed they lag it, and say so here.
+            "exports": "behind the store" if self._export_failed else "level with the store",
         }
         try:
             self.writer.set_facts(facts)

@@ -10,6 +10,7 @@ a full disk (RLIMIT_FSIZE) and a config error.
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import re
@@ -251,6 +252,9 @@ def test_live_survey_end_to_end(survey, tmp_path):
     assert scans >= 0.8 * survey.duration_s * 10  # 10 Hz, the first and last ones aside
     facts = dict(db.execute("SELECT key, value FROM run"))
     assert facts["input"] == "live" and facts["world_frame"] == "utm"
+    assert facts["end"] == "interrupted (SIGTERM)"
+    assert facts["exports"] == "level with the store"
+    assert_exports_level(run)
     rows = (run / "trees.csv").read_text().splitlines()
     assert rows[0].startswith("tree_id,field_id,row,easting,northing")
     matched = [r.split(",")[1] for r in rows[1:] if r.split(",")[1]]
@@ -279,6 +283,57 @@ def test_live_survey_end_to_end(survey, tmp_path):
     day = 86_400 * 10**9
     assert [t % day for _, t in gnss[:dated]] == [t % day for _, t in played[:dated]]
     assert gnss[dated:] == played[dated : len(gnss)]
+
+
+def assert_exports_level(run: Path) -> None:
+    """trees.csv and trees.geojson hold exactly the store's trees: the same found trees
+    with the same observation counts, the same number of missing ones."""
+    with sqlite3.connect(run / "traits.sqlite") as db:
+        stored = db.execute("SELECT tree_id, observations, status FROM trees").fetchall()
+    found = sorted((t, n) for t, n, status in stored if status == "found")
+    missing = sum(status == "missing" for _, _, status in stored)
+    with open(run / "trees.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert (
+        sorted((r["tree_id"], int(r["observations"])) for r in rows if r["status"] == "found")
+        == found
+    )
+    assert sum(r["status"] == "missing" for r in rows) == missing
+    features = json.loads((run / "trees.geojson").read_text())["features"]
+    assert (
+        sorted(
+            (f["properties"]["tree_id"], f["properties"]["observations"])
+            for f in features
+            if f["properties"]["status"] == "found"
+        )
+        == found
+    )
+
+
+def test_ctrl_c_mid_run_exports_the_store_and_marks_the_run_interrupted(survey, tmp_path):
+    """Issue 14, case 8: SIGINT while the trees come in. The exports are rewritten from
+    the store after the last scan, and the store and the summary say the run was
+    interrupted."""
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    config = write_config(tmp_path, survey, player, camera="enabled = false")
+    service = Service(tmp_path, config)
+    try:
+        service.wait_ready()
+        player.start()
+        service.wait_for(lambda s: counter(s, "trees") >= 2, 60, "with 2 trees")
+        service.proc.send_signal(signal.SIGINT)
+        code = service.proc.wait(timeout=30)
+    finally:
+        player.close()
+        service.close()
+    assert code == 0, service.stderr()
+    run = (tmp_path / "out" / "runs" / "latest").resolve()
+    facts = dict(open_db(run / "traits.sqlite").execute("SELECT key, value FROM run"))
+    assert facts["end"] == "interrupted (SIGINT)"
+    assert facts["exports"] == "level with the store"
+    assert int(facts["scans"]) > 0
+    assert_exports_level(run)
+    assert '"end": "interrupted (SIGINT)"' in service.stderr()  # the summary line
 
 
 def test_gnss_unplugged_then_kill_9_and_restart(survey, tmp_path):
@@ -311,6 +366,8 @@ def test_gnss_unplugged_then_kill_9_and_restart(survey, tmp_path):
     db = open_db(killed_run / "traits.sqlite")  # opens clean: WAL recovered
     scans = db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0]
     assert scans >= 20
+    # Killed outright: it never said how it ended, so it does not look complete.
+    assert dict(db.execute("SELECT key, value FROM run"))["end"] == "running"
     db.close()
 
     # The closed pty's /dev/pts number may already belong to another program's pty: the
