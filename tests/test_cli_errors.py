@@ -157,3 +157,22 @@ def test_ctrl_c_during_start_up_is_one_line_exit_130(survey, tmp_path, after_s):
     assert replay.returncode in INTERRUPTED_STATUS, err
     assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGINT)"]
     assert not list((tmp_path / "out").glob("[!.]*"))
+
+
+def test_sigterm_in_a_replay_is_one_line_exit_143_and_keeps_the_earlier_run(survey, tmp_path):
+    """`kill` (a CI runner's timeout, a supervisor) stops a replay as Ctrl-C does: what it
+    built is discarded, nothing is left half-written, the earlier run stays whole."""
+    out = tmp_path / "out"
+    assert main(["replay", str(survey.recording), "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
+    replay = _start(["replay", str(survey.recording), "--out", str(out), "--force"])
+    deadline = time.monotonic() + 120
+    while not list(out.glob(".treetraits.staging-*")) and replay.poll() is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    replay.send_signal(signal.SIGTERM)
+    _, err = replay.communicate(timeout=120)
+    assert replay.returncode == 143, err
+    assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGTERM)"]
+    assert {p.name: p.read_bytes() for p in out.glob("[!.]*")} == before
+    assert not list(out.glob(".treetraits.staging-*"))
