@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from treetraits.drivers.jsontext import JsonTooDeepError, loads_limited
 from treetraits.errors import CalibrationError
 
 BANDS = ("red", "green", "nir")
@@ -182,12 +183,14 @@ def load_calibration(source: str | os.PathLike | Mapping[str, Any]) -> Calibrati
     else:
         name = os.fspath(source)
         try:
-            data = json.loads(Path(source).read_text())
+            data = loads_limited(Path(source).read_text())
         except FileNotFoundError:
             raise CalibrationError(f"{name}: no such calibration file") from None
+        except JsonTooDeepError as exc:
+            raise CalibrationError(f"{name}: {exc}: not a calibration") from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise CalibrationError(f"{name}: not valid JSON ({exc})") from exc
-        except RecursionError:
+        except RecursionError:  # not with the depth limit; kept as the last guard
             raise CalibrationError(f"{name}: JSON nested too deeply to be a calibration") from None
         except OSError as exc:
             raise CalibrationError(
@@ -294,9 +297,18 @@ def _camera(name: str, value: Any) -> CameraModel:
     for i, coefficient in enumerate(dist):
         _check_range(name, f"camera.dist[{i}]", float(coefficient), "camera.dist")
     dist = np.pad(dist, (0, 5 - len(dist)))
-    channels = dict(value.get("channels", {"red": 2, "green": 1, "nir": 0}))
+    channels = value.get("channels", {"red": 2, "green": 1, "nir": 0})
+    if not isinstance(channels, Mapping):
+        raise CalibrationError(f"{name}: camera.channels must be an object, e.g. {{'red': 2}}")
+    channels = dict(channels)
+    unknown = sorted(map(str, set(channels) - set(BANDS)))
+    if unknown:
+        raise CalibrationError(f"{name}: camera.channels: unknown band(s) {unknown}")
     for band in ("red", "nir"):
-        if channels.get(band) not in (0, 1, 2):
+        if band not in channels:
+            raise CalibrationError(f"{name}: camera.channels.{band} must be 0, 1 or 2")
+    for band, index in channels.items():
+        if isinstance(index, bool) or index not in (0, 1, 2):
             raise CalibrationError(f"{name}: camera.channels.{band} must be 0, 1 or 2")
     if len({channels[b] for b in channels}) != len(channels):
         raise CalibrationError(f"{name}: camera.channels gives two bands the same index")

@@ -88,11 +88,16 @@ def test_bad_inputs_are_one_line_naming_the_file_exit_2(survey, tmp_path, capsys
     broken = tmp_path / "broken_attachment.mcap"
     with rec.RecordingWriter(broken, calibration={}) as writer:
         writer.attach(rec.FIELD_MAP_NAME, b'{"type": "\xff\xfe', rec.FIELD_MAP_MEDIA_TYPE)
+    # One whose attached field map is nested 100 000 deep (the explicit depth limit).
+    deep_attached = tmp_path / "deep_attachment.mcap"
+    with rec.RecordingWriter(deep_attached, calibration={}) as writer:
+        writer.attach(rec.FIELD_MAP_NAME, deep_json.read_bytes(), rec.FIELD_MAP_MEDIA_TYPE)
     replay = ["replay", str(survey.recording), "--out", str(tmp_path / "out")]
     cases = [
         ([*replay, "--calibration", str(tmp_path)], f"{tmp_path}: cannot read the calibration"),
-        ([*replay, "--calibration", str(deep_json)], "deep.json: JSON nested too deeply"),
-        ([*replay, "--field-map", str(deep_json)], "deep.json: JSON nested too deeply"),
+        ([*replay, "--calibration", str(deep_json)], "deep.json: JSON nested 33+ levels deep"),
+        ([*replay, "--field-map", str(deep_json)], "deep.json: JSON nested 33+ levels deep"),
+        (["replay", str(deep_attached), "--out", str(tmp_path / "out")], "map): JSON nested 33+"),
         ([*replay, "--config", str(deep_toml)], "deep.toml: TOML nested too deeply"),
         (["replay", str(broken), "--out", str(tmp_path / "out")], "attached field map): not UTF-8"),
     ]

@@ -79,10 +79,14 @@ def _box(text: str) -> Box:
 
 
 def _read_json(path: Path, what: str) -> Any:
+    from treetraits.drivers.jsontext import JsonTooDeepError, loads_limited
+
     try:
-        return json.loads(path.read_text())
+        return loads_limited(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such {what} file") from None
+    except JsonTooDeepError as exc:
+        raise ConfigError(f"{path}: {exc}: not a {what} file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: {what} file is not valid JSON ({exc})") from exc
 
