@@ -170,6 +170,13 @@ def format_loss(summary: dict) -> str:
         parts.append(f"{summary['damaged_chunks']} damaged chunk(s) skipped")
     if summary["truncated"]:
         parts.append("the file is cut short")
+        if summary["field_map"]["source"] == "none":
+            # The simulator attaches the field map at the end of its recording (the live
+            # recorder at the start): cut, it is lost and the trees go unmatched.
+            parts.append(
+                "no field map was read (one attached to the recording would be in the part "
+                "cut off; give --field-map FILE)"
+            )
     spans = "; ".join(
         f"between {s['from'] or 'the start'} and {s['to'] or 'the end'}" for s in summary["lost"]
     )
