@@ -336,6 +336,74 @@ def test_ctrl_c_mid_run_exports_the_store_and_marks_the_run_interrupted(survey, 
     assert '"end": "interrupted (SIGINT)"' in service.stderr()  # the summary line
 
 
+def _trees_by_field_id(store: Path) -> dict[str, tuple]:
+    with sqlite3.connect(store) as db:
+        rows = db.execute(
+            "SELECT field_id, tree_id, width_m, height_m, ndvi FROM trees "
+            "WHERE status = 'found' AND field_id IS NOT NULL"
+        ).fetchall()
+    return {field_id: rest for field_id, *rest in rows}
+
+
+def _within(a: float | None, b: float | None, rel: float) -> bool:
+    if a is None or b is None:
+        return a is b
+    return abs(a - b) <= rel * max(abs(a), abs(b))
+
+
+def test_live_and_replay_write_the_same_trees(survey, tmp_path):
+    """Issue 14, case 9: the twin recording played into `treetraits run --record` (LiDAR
+    over UDP, GNSS and wheels over ptys, the camera from a video), then replayed. The
+    replay of what the service recorded writes the service's trees (same ids, traits
+    within 1 %: they come out equal). The replay of the twin recording itself finds the
+    same field-map trees; its traits are not held to 1 % here: the live run sees fewer
+    scans (86-87 against 98-99 observations) and its camera is a video read from the
+    service's start, not the twin's exposures (measured gaps in docs/service.md)."""
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    config = write_config(tmp_path, survey, player)
+    service = Service(tmp_path, config, "--record")
+    try:
+        service.wait_ready()
+        player.start()
+        assert player.wait(timeout=survey.duration_s + 30)
+        played = player.counters["lidar_sent"]
+        service.wait_for(
+            lambda s: counter(s, "lidar_packets") + max(counter(s, "kernel_drops"), 0) >= played,
+            20,
+            "with every played packet taken",
+        )
+        code, _ = service.terminate()
+    finally:
+        player.close()
+        service.close()
+    assert code == 0, service.stderr()
+    live = _trees_by_field_id((tmp_path / "out" / "runs" / "latest" / "traits.sqlite").resolve())
+    assert len(live) >= 4
+
+    (recording,) = sorted((tmp_path / "recordings").glob("*.mcap"))
+    for name, source in (("of-the-live-run", recording), ("of-the-twin", survey.recording)):
+        out = tmp_path / f"replay-{name}"
+        result = subprocess.run(
+            [sys.executable, "-m", "treetraits", "replay", str(source), "--out", str(out)],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert result.returncode == 0, result.stderr
+        replayed = _trees_by_field_id(out / "traits.sqlite")
+        assert set(replayed) == set(live), name
+        if name != "of-the-live-run":
+            continue
+        # The very messages the service processed, in its order: the same trees.
+        for field_id, (tree_id, width, height, ndvi) in replayed.items():
+            live_id, live_width, live_height, live_ndvi = live[field_id]
+            assert tree_id == live_id
+            assert _within(width, live_width, 0.01), (field_id, width, live_width)
+            assert _within(height, live_height, 0.01), (field_id, height, live_height)
+            assert _within(ndvi, live_ndvi, 0.01), (field_id, ndvi, live_ndvi)
+
+
 def test_gnss_unplugged_then_kill_9_and_restart(survey, tmp_path):
     player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
     config = write_config(tmp_path, survey, player, camera="enabled = false")
