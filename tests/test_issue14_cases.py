@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import VLP16_DIR
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
 from treetraits.drivers.rotation import RotatingRecorder
@@ -110,3 +111,36 @@ def test_a_live_recording_cut_short_replays_with_data_loss_and_its_field_map(
     assert summary["truncated"] is True and summary["data_loss"] is True
     assert summary["field_map"]["source"] == "attachment" and summary["matched"] >= 1
     assert "the file is cut short" in captured.err and "no field map" not in captured.err
+
+
+def test_lidar_export_onto_its_own_input_is_refused_and_keeps_it(tmp_path, capsys):
+    """`lidar export X.pcap --out X.pcap` was a traceback; now one line (exit 2), and the
+    capture is untouched."""
+    capture = tmp_path / "X.pcap"
+    capture.write_bytes((VLP16_DIR / "lidarutils_vlp16_strongest_0x22.pcap").read_bytes())
+    before = capture.read_bytes()
+    assert main(["lidar", "export", str(capture), "--out", str(capture)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"treetraits: error: {capture}: exists and is not a directory; give a directory\n"
+    assert capture.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["X.pcap"]
+
+
+def test_an_immutable_output_directory_is_one_line_exit_6(survey, tmp_path, capsys):
+    """`chattr +i`: refused even for root (where a read-only mode is not). Needs
+    CAP_LINUX_IMMUTABLE, which a container may not grant: then nothing can be tested."""
+    out = tmp_path / "immutable"
+    out.mkdir()
+    made = subprocess.run(["chattr", "+i", str(out)], capture_output=True, text=True)
+    if made.returncode != 0:
+        pytest.skip(f"chattr +i refused here: {made.stderr.strip()}")
+    try:
+        for target in (out, out / "sub"):
+            capsys.readouterr()
+            assert main(["replay", str(survey.recording), "--out", str(target)]) == EXIT_IO
+            err = capsys.readouterr().err
+            assert err.startswith(f"treetraits: error: {out}") and err.count("\n") == 1, err
+            assert "Operation not permitted" in err
+        assert list(out.iterdir()) == []
+    finally:
+        subprocess.run(["chattr", "-i", str(out)], check=True)
