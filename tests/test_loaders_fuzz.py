@@ -316,3 +316,40 @@ def test_a_recording_whose_metadata_calibration_is_nested_too_deeply(tmp_path):
     refused = r"calibration in the 'treetraits' metadata is not JSON"
     with pytest.raises(SourceError, match=refused), rec.read_recording(path):
         pass
+
+
+def _small_recording() -> bytes:
+    """A recording with every kind of record a reader meets: metadata (the CitrusFarm
+    calibration), messages in a few chunks, the field map attached."""
+    from treetraits.drivers import recording as rec
+
+    path = WORK / "small-source.mcap"
+    path.unlink(missing_ok=True)
+    calibration = json.loads(CITRUSFARM.read_text())
+    with rec.RecordingWriter(path, calibration=calibration, chunk_size=2000) as writer:
+        for i in range(60):
+            writer.write(rec.GNSS_NMEA, b"$GPGGA,%06d*00\r\n" % i, 10**18 + i, 10**18 + i)
+        writer.attach(rec.FIELD_MAP_NAME, FIELD_MAP_GEOJSON.encode(), rec.FIELD_MAP_MEDIA_TYPE)
+    return path.read_bytes()
+
+
+SMALL_RECORDING = _small_recording()
+
+
+@FUZZ
+@given(edits, cuts)
+def test_a_damaged_recording_reads_or_is_refused(change, cut):
+    """A recording's metadata, attachments and messages, read back from damaged bytes:
+    read as far as they go (the damage counted), or a SourceError; nothing else."""
+    from treetraits.drivers import recording as rec
+
+    path = _write("damaged.mcap", _mutate(SMALL_RECORDING, change, cut))
+    try:
+        with rec.read_recording(path) as recording:
+            messages = list(recording)
+            recording.attachments  # noqa: B018 - reading them is the test
+            assert len(messages) <= 60
+            if not change and cut is None:
+                assert len(messages) == 60 and not recording.lost_data
+    except SourceError:
+        pass
