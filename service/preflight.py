@@ -26,20 +26,35 @@ class StartInputs:
     calibration: Calibration
     field_map: list  # FieldTree records; [] without a field map
     field_map_bytes: bytes | None  # the file as it is, for a recording's attachment
+    # Permission problems found when checking as another user than the service's.
+    notes: tuple[str, ...] = ()
 
 
-def check_start(cfg: ServiceConfig, *, process: bool = True, record: bool = False) -> StartInputs:
+def check_start(
+    cfg: ServiceConfig, *, process: bool = True, record: bool = False, as_service: bool = True
+) -> StartInputs:
     """Every start-up check of `run` (`process`) or `record` that needs no device.
-    `record`: a recording will be written into `record.dir` (run --record)."""
+    `record`: a recording will be written into `record.dir` (run --record).
+    `as_service`: this process is the one that will write (run); False for `config
+    check`, often run by an admin for a service that runs as its own user: a directory
+    this user may not write is then a note, not an error (a file in the way still is)."""
     _check_sensors(cfg)
     _check_camera_device(cfg)
     calibration = _calibration(cfg)
     field_map, field_map_bytes = _field_map(cfg)
-    if process:
-        _check_writable_dir("output.dir", Path(cfg.output.dir))
-    if record:
-        _check_writable_dir("record.dir", Path(cfg.record.dir))
-    return StartInputs(calibration, field_map, field_map_bytes)
+    notes = []
+    for key, wanted, directory in (
+        ("output.dir", process, cfg.output.dir),
+        ("record.dir", record, cfg.record.dir),
+    ):
+        if not wanted:
+            continue
+        problem = _check_writable_dir(key, Path(directory))
+        if problem and as_service:
+            raise ConfigError(problem)
+        if problem:
+            notes.append(f"{problem} by this user (the service's user may differ)")
+    return StartInputs(calibration, field_map, field_map_bytes, tuple(notes))
 
 
 def _check_sensors(cfg: ServiceConfig) -> None:
@@ -91,13 +106,19 @@ def _field_map(cfg: ServiceConfig) -> tuple[list, bytes | None]:
         raise ConfigError(f"pipeline.field_map: {exc}") from exc
 
 
-def _check_writable_dir(key: str, directory: Path) -> None:
+def _check_writable_dir(key: str, directory: Path) -> str | None:
     """`directory` is one we could write in, or could be made: its nearest existing
-    ancestor is a directory we may write to. Nothing is created."""
+    ancestor is a directory. Nothing is created. A file in the way raises; what this
+    user may not write or look into is returned as the problem."""
     existing = directory
-    while not existing.exists() and existing.parent != existing:
-        existing = existing.parent
-    if not existing.is_dir():
+    try:
+        while not existing.exists() and existing.parent != existing:
+            existing = existing.parent
+        is_dir = existing.is_dir()
+    except PermissionError:
+        return f"{key}: {existing} cannot be looked into (making {directory})"
+    if not is_dir:
         raise ConfigError(f"{key}: {existing} is not a directory (in {directory})")
     if not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(f"{key}: {existing} is not writable (making {directory})")
+        return f"{key}: {existing} is not writable (making {directory})"
+    return None

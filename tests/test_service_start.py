@@ -157,3 +157,24 @@ def test_a_start_that_fails_makes_no_run_directory_and_keeps_latest(tmp_path):
     assert f"cannot listen on UDP 127.0.0.1:{port}" in error_line(result.stderr)
     assert sorted(p.name for p in runs.iterdir()) == ["20260101T000000Z", "latest"]
     assert (runs / "latest").readlink() == Path("20260101T000000Z")
+
+
+def test_a_directory_this_user_may_not_write_is_a_note_for_check_an_error_for_run(
+    tmp_path, monkeypatch
+):
+    """`config check` run by an admin for a service with its own user: the OS's answer
+    to "may I write here" is for the admin. Root may write anywhere, so that answer is
+    stood in for (the one mock: another user cannot exist on every test machine)."""
+    from treetraits.errors import ConfigError
+    from treetraits.service import preflight
+    from treetraits.service.config import load_config
+
+    config = load_config(write_config(tmp_path))
+    monkeypatch.setattr(preflight.os, "access", lambda path, mode: False)
+    checked = preflight.check_start(config, as_service=False)
+    assert checked.notes == (
+        f"output.dir: {tmp_path} is not writable (making {tmp_path / 'out'}) by this user "
+        "(the service's user may differ)",
+    )
+    with pytest.raises(ConfigError, match=rf"output\.dir: {tmp_path} is not writable"):
+        preflight.check_start(config)

@@ -55,9 +55,9 @@ def run_check(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.file)
     # The very checks `run` makes at start (service/preflight.py), not a twin of them.
-    inputs = check_start(cfg, process=True, record=cfg.record.enabled)
+    inputs = check_start(cfg, process=True, record=cfg.record.enabled, as_service=False)
     print(f"{args.file}: ok")
     defaulted = inputs.calibration.describe_defaults()
-    if defaulted:
-        print(f"note: {defaulted}")
+    for note in ([defaulted] if defaulted else []) + list(inputs.notes):
+        print(f"note: {note}")
     return 0
