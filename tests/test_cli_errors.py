@@ -177,7 +177,7 @@ def test_sigterm_in_a_replay_is_one_line_exit_143_and_keeps_the_earlier_run(surv
         time.sleep(0.02)
     replay.send_signal(signal.SIGTERM)
     _, err = replay.communicate(timeout=120)
-    assert replay.returncode == 143, err
+    assert replay.returncode == 143, err  # 128 + SIGTERM, docs/cli.md
     assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGTERM)"]
     assert {p.name: p.read_bytes() for p in out.glob("[!.]*")} == before
     assert not list(out.glob(".treetraits.staging-*"))

@@ -15,7 +15,13 @@ import sys
 import threading
 
 from treetraits import __version__
-from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_USAGE, TreetraitsError
+from treetraits.errors import (
+    EXIT_INTERRUPTED,
+    EXIT_IO,
+    EXIT_TERMINATED,
+    EXIT_USAGE,
+    TreetraitsError,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -100,7 +106,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 INTERRUPTED = "interrupted (SIGINT)"
-EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, as a shell reports a process SIGTERM ended
 
 
 class Terminated(KeyboardInterrupt):
