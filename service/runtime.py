@@ -135,6 +135,7 @@ class Service:
         self._signals = 0
         self._stopped_by: str | None = None  # "SIGTERM", "SIGINT": the signal that stopped it
         self._export_failed = False  # the last export did not go through
+        self._unprocessed = 0  # queued items the shutdown's drain limit left
 
     # --- start ---------------------------------------------------------------------------
 
@@ -429,6 +430,7 @@ class Service:
         left = sum(len(w.queue) for w in self.workers)
         self._handle_batch(left, deadline=begun + DRAIN_S)
         unhandled = sum(len(w.queue) for w in self.workers)
+        self._unprocessed = unhandled  # said in the run facts and the summary
         if unhandled:
             log.warning("stopping: %d queued items left unprocessed (drain limit)", unhandled)
         if self.processor is not None:
@@ -446,6 +448,7 @@ class Service:
                 log.warning("%s: receive thread still busy at exit", worker.name)
         summary = dict(self._numbers(), messages=self.counters.messages)
         summary["end"] = self.end_state()
+        summary["unprocessed_at_stop"] = unhandled
         summary["store_failures"] = self.counters.store_failures
         summary["run_s"] = round(time.monotonic() - begun, 2)
         log.info("stopped: %s", json.dumps(summary))
@@ -480,6 +483,9 @@ class Service:
             "frames": processor.stats.frames,
             "stopped": utc_stamp(),
             "end": self.end_state(),
+            # Items still queued when the drain limit ran out: received, never processed
+            # nor recorded (a loop that lagged its sensors, e.g. on a loaded machine).
+            "unprocessed_at_stop": self._unprocessed,
             # The exports were rewritten from the store's trees after the last scan, so
             # they hold what it holds; if that failed they lag it, and say so here.
             "exports": "behind the store" if self._export_failed else "level with the store",

@@ -254,6 +254,8 @@ def test_live_survey_end_to_end(survey, tmp_path):
     assert facts["input"] == "live" and facts["world_frame"] == "utm"
     assert facts["end"] == "interrupted (SIGTERM)"
     assert facts["exports"] == "level with the store"
+    unprocessed = int(facts["unprocessed_at_stop"])
+    assert f'"unprocessed_at_stop": {unprocessed}' in service.stderr()
     assert_exports_level(run)
     rows = (run / "trees.csv").read_text().splitlines()
     assert rows[0].startswith("tree_id,field_id,row,easting,northing")
@@ -269,7 +271,11 @@ def test_live_survey_end_to_end(survey, tmp_path):
         recorded = [(m.topic, m.data, m.publish_time) for m in recording]
         assert not recording.truncated
     topics = [topic for topic, _, _ in recorded]
-    assert topics.count(rec.LIDAR_PACKETS) == player.counters["lidar_sent"]
+    # Every packet played is recorded, but those the drain limit left queued at the stop
+    # (a loop behind its sensors on a loaded machine: 747 items once here), now counted.
+    recorded_lidar = topics.count(rec.LIDAR_PACKETS)
+    assert player.counters["lidar_sent"] - unprocessed <= recorded_lidar
+    assert recorded_lidar <= player.counters["lidar_sent"]
     assert {rec.CAMERA_JPEG, rec.GNSS_NMEA, rec.WHEELS_JACKAL} <= set(topics)
     # GNSS publish_time is the epoch's UTC from the sentences, as the simulator wrote it
     # (the service's clock is hours off the simulated survey's: receive times would show).
