@@ -1,8 +1,10 @@
 """Calibration v1 (docs/architecture.md): camera model, reflectance, extrinsics, wheels.
 
-One JSON object, loaded and checked once; a malformed file is refused with a message
-naming the field. Missing optional parts fall back to the defaults below (documented in
-docs/calibration.md). Transforms are 4x4 matrices named `T_target_source`:
+One JSON object, loaded and checked once; a malformed file, a number that is not finite
+or outside its physical range (`LIMITS`), or a missing required field is refused with a
+message naming the field. Only the optional parts (`camera`, `reflectance`,
+`wheels.ticks_per_rev`) fall back to the defaults below, and `Calibration.defaults` says
+which did (docs/calibration.md). Transforms are 4x4 matrices named `T_target_source`:
 `p_camera = T_camera_lidar @ p_lidar`; `base` is `base_footprint` (on the ground).
 """
 
@@ -18,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from treetraits.drivers.jsontext import JsonTooDeepError, loads_limited
 from treetraits.errors import CalibrationError
 
 BANDS = ("red", "green", "nir")
@@ -67,6 +70,57 @@ DEFAULT_T_BASE_LIDAR = np.array(
 # Raw 8-bit value to reflectance without a target calibration: v / 255.
 DEFAULT_REFLECTANCE = (1.0 / 255.0, 0.0)
 
+# What a calibration file must hold: the robot's own geometry. A default from another
+# robot is wrong without a word (the Jackal's 0.444 m LiDAR height on CitrusFarm's
+# 0.379 m mount), so it is never taken for these.
+REQUIRED = ("T_base_lidar", "T_base_gnss", "wheels")
+REQUIRED_WHEELS = ("radius", "track")
+
+# The physical range of every number (closed intervals), and why (docs/calibration.md).
+LIMITS: dict[str, tuple[float, float]] = {
+    # From a small robot's 5 cm wheel to a tractor's rear tyre (1.9 m across).
+    "wheels.radius": (0.01, 2.0),
+    # A skid-steer's effective track reaches about 2x its 0.3-2.5 m geometric one.
+    "wheels.track": (0.1, 6.0),
+    # One count per turn to a 23-bit absolute encoder's 8.4 million (with quadrature).
+    "wheels.ticks_per_rev": (1.0, 2.0**23 * 4),
+    # Sensors sit on the robot: a tractor with an implement is under 10 m long.
+    "translation": (-10.0, 10.0),
+    # Image size: the largest machine-vision sensors are about 16k pixels wide.
+    "camera.width": (1, 16384),
+    "camera.height": (1, 16384),
+    # A focal length over 100x the image width is a field of view under 0.6 degrees.
+    "camera.focal_per_width": (0.0, 100.0),
+    # Radial-tangential coefficients of real lenses are single digits; 100 is no lens.
+    "camera.dist": (-100.0, 100.0),
+    # Reflectance is 0..1 from an 8-bit value: gain up to 1 (1/255 is the full range).
+    "reflectance.gain": (0.0, 1.0),
+    "reflectance.offset": (-1.0, 1.0),
+}
+
+
+def _check_range(name: str, key: str, value: float, limit: str | None = None) -> None:
+    low, high = LIMITS[limit or key]
+    if not (math.isfinite(value) and low <= value <= high):
+        raise CalibrationError(
+            f"{name}: {key} must be in [{low:g}, {high:g}] ({_UNITS.get(limit or key, '')}), "
+            f"got {value!r}"
+        )
+
+
+_UNITS = {
+    "wheels.radius": "m",
+    "wheels.track": "m",
+    "wheels.ticks_per_rev": "counts per wheel turn",
+    "translation": "m",
+    "camera.width": "px",
+    "camera.height": "px",
+    "camera.focal_per_width": "focal length / image width",
+    "camera.dist": "distortion coefficient",
+    "reflectance.gain": "per 8-bit count",
+    "reflectance.offset": "reflectance",
+}
+
 
 @dataclass(frozen=True)
 class Calibration:
@@ -80,6 +134,23 @@ class Calibration:
     T_base_gnss: np.ndarray = field(default_factory=lambda: np.eye(4))
     wheels: WheelGeometry = field(default_factory=WheelGeometry)
     source: str = "defaults"
+    # The parts the source did not give, which took their documented default ("camera":
+    # no NDVI; "reflectance.nir": 1/255...): said aloud by the commands. A bare
+    # `Calibration()` (no calibration anywhere) is all defaults.
+    defaults: tuple[str, ...] = ("T_base_lidar", "T_base_gnss", "wheels", "camera")
+
+    def describe_defaults(self) -> str | None:
+        """One line naming what was not calibrated, or None when everything was given."""
+        if not self.defaults:
+            return None
+        what = {
+            "camera": "no camera (NDVI is left out)",
+            "T_base_lidar": "the LiDAR on a Jackal's top plate (0.444 m up)",
+            "T_base_gnss": "the GNSS antenna at base_footprint",
+            "wheels": "a Jackal's wheels (radius 0.098 m, track 0.555 m)",
+        }
+        parts = [what.get(key, f"{key} = the default (v/255)") for key in self.defaults]
+        return f"calibration {self.source}: documented defaults taken: " + "; ".join(parts)
 
     def to_json(self) -> dict[str, Any]:
         """The calibration v1 object (as stored in a recording's metadata)."""
@@ -112,12 +183,14 @@ def load_calibration(source: str | os.PathLike | Mapping[str, Any]) -> Calibrati
     else:
         name = os.fspath(source)
         try:
-            data = json.loads(Path(source).read_text())
+            data = loads_limited(Path(source).read_text())
         except FileNotFoundError:
             raise CalibrationError(f"{name}: no such calibration file") from None
+        except JsonTooDeepError as exc:
+            raise CalibrationError(f"{name}: {exc}: not a calibration") from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise CalibrationError(f"{name}: not valid JSON ({exc})") from exc
-        except RecursionError:
+        except RecursionError:  # not with the depth limit; kept as the last guard
             raise CalibrationError(f"{name}: JSON nested too deeply to be a calibration") from None
         except OSError as exc:
             raise CalibrationError(
@@ -134,14 +207,30 @@ def load_calibration(source: str | os.PathLike | Mapping[str, Any]) -> Calibrati
     t_camera_lidar = _transform(name, data, "T_camera_lidar", None)
     if camera is not None and t_camera_lidar is None:
         raise CalibrationError(f"{name}: camera given without T_camera_lidar")
+    reflectance = _reflectance(name, data.get("reflectance", {}))
+    wheels = _wheels(name, data.get("wheels", {}))
+    missing = [key for key in REQUIRED if key not in data]
+    missing += [
+        f"wheels.{k}" for k in REQUIRED_WHEELS if "wheels" in data and k not in data["wheels"]
+    ]
+    if missing:
+        raise CalibrationError(
+            f"{name}: {', '.join(missing)} missing: the robot's own geometry has no default "
+            "(docs/calibration.md)"
+        )
+    defaults = [] if camera is not None else ["camera"]
+    if camera is not None:
+        given = data.get("reflectance", {})
+        defaults += [f"reflectance.{b}" for b in ("red", "nir") if b not in given]
     return Calibration(
         camera=camera,
-        reflectance=_reflectance(name, data.get("reflectance", {})),
+        reflectance=reflectance,
         T_camera_lidar=t_camera_lidar,
         T_base_lidar=_transform(name, data, "T_base_lidar", DEFAULT_T_BASE_LIDAR),
         T_base_gnss=_transform(name, data, "T_base_gnss", np.eye(4)),
-        wheels=_wheels(name, data.get("wheels", {})),
+        wheels=wheels,
         source=name,
+        defaults=tuple(defaults),
     )
 
 
@@ -167,6 +256,8 @@ def _transform(name: str, data: Mapping, key: str, default: np.ndarray | None):
         raise CalibrationError(f"{name}: {key} last row must be 0 0 0 1")
     if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) or np.linalg.det(rotation) < 0:
         raise CalibrationError(f"{name}: {key} rotation part is not a rotation (row-major 4x4?)")
+    for axis, value in zip("xyz", matrix[:3, 3], strict=True):
+        _check_range(name, f"{key} translation {axis}", float(value), "translation")
     return matrix
 
 
@@ -177,19 +268,47 @@ def _camera(name: str, value: Any) -> CameraModel:
         if key not in value:
             raise CalibrationError(f"{name}: camera.{key} is missing")
     width, height = value["width"], value["height"]
-    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+    if not (
+        isinstance(width, int)
+        and isinstance(height, int)
+        and not isinstance(width, bool)
+        and not isinstance(height, bool)
+        and width > 0
+        and height > 0
+    ):
         raise CalibrationError(f"{name}: camera.width/height must be positive integers")
+    _check_range(name, "camera.width", width)
+    _check_range(name, "camera.height", height)
     k = _numbers(name, "camera.K", value["K"], 9).reshape(3, 3)
     if k[0, 0] <= 0 or k[1, 1] <= 0 or not np.allclose(k[2], [0, 0, 1]):
         raise CalibrationError(f"{name}: camera.K must be [fx,0,cx, 0,fy,cy, 0,0,1] with fx,fy > 0")
+    for key, focal in (("camera.K fx", k[0, 0]), ("camera.K fy", k[1, 1])):
+        _check_range(name, f"{key} / camera.width", float(focal / width), "camera.focal_per_width")
+    # The principal point is where the optical axis meets the sensor: inside the image.
+    if not (0 <= k[0, 2] <= width and 0 <= k[1, 2] <= height):
+        raise CalibrationError(
+            f"{name}: camera.K principal point ({k[0, 2]:g}, {k[1, 2]:g}) px must lie in the "
+            f"{width}x{height} image"
+        )
     dist = value["dist"]
     dist = _numbers(name, "camera.dist", dist, len(dist) if isinstance(dist, list) else 5)
     if len(dist) not in (4, 5):
         raise CalibrationError(f"{name}: camera.dist must hold 4 or 5 numbers (k1 k2 p1 p2 [k3])")
+    for i, coefficient in enumerate(dist):
+        _check_range(name, f"camera.dist[{i}]", float(coefficient), "camera.dist")
     dist = np.pad(dist, (0, 5 - len(dist)))
-    channels = dict(value.get("channels", {"red": 2, "green": 1, "nir": 0}))
+    channels = value.get("channels", {"red": 2, "green": 1, "nir": 0})
+    if not isinstance(channels, Mapping):
+        raise CalibrationError(f"{name}: camera.channels must be an object, e.g. {{'red': 2}}")
+    channels = dict(channels)
+    unknown = sorted(map(str, set(channels) - set(BANDS)))
+    if unknown:
+        raise CalibrationError(f"{name}: camera.channels: unknown band(s) {unknown}")
     for band in ("red", "nir"):
-        if channels.get(band) not in (0, 1, 2):
+        if band not in channels:
+            raise CalibrationError(f"{name}: camera.channels.{band} must be 0, 1 or 2")
+    for band, index in channels.items():
+        if isinstance(index, bool) or index not in (0, 1, 2):
             raise CalibrationError(f"{name}: camera.channels.{band} must be 0, 1 or 2")
     if len({channels[b] for b in channels}) != len(channels):
         raise CalibrationError(f"{name}: camera.channels gives two bands the same index")
@@ -206,6 +325,8 @@ def _reflectance(name: str, value: Any) -> dict[str, tuple[float, float]]:
         gain, offset = _numbers(name, f"reflectance.{band}", pair, 2)
         if gain <= 0:
             raise CalibrationError(f"{name}: reflectance.{band} gain must be positive")
+        _check_range(name, f"reflectance.{band} gain", float(gain), "reflectance.gain")
+        _check_range(name, f"reflectance.{band} offset", float(offset), "reflectance.offset")
         out[band] = (float(gain), float(offset))
     return out
 
@@ -220,6 +341,7 @@ def _wheels(name: str, value: Any) -> WheelGeometry:
             v = value[key]
             if not isinstance(v, int | float) or isinstance(v, bool) or not v > 0:
                 raise CalibrationError(f"{name}: wheels.{key} must be a positive number")
+            _check_range(name, f"wheels.{key}", float(v))
             numbers[key] = float(v)
     unknown = sorted(set(value) - {"radius", "track", "ticks_per_rev"})
     if unknown:

@@ -53,6 +53,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 import treetraits
+from treetraits.drivers.jsontext import loads_limited
 from treetraits.errors import SourceError
 
 FORMAT_VERSION = "1"
@@ -721,8 +722,8 @@ class RecordingReader:
                 f"({SOFTWARE}) reads formats {' and '.join(map(repr, READ_VERSIONS))} only"
             )
         try:
-            calibration = json.loads(fields.get("calibration") or "{}")
-        except ValueError as error:
+            calibration = loads_limited(fields.get("calibration") or "{}")
+        except ValueError as error:  # not JSON, or nested deeper than any calibration
             raise SourceError(
                 f"{self.path}: calibration in the {METADATA_NAME!r} metadata is not JSON ({error})"
             ) from error

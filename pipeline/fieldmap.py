@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from treetraits.drivers.jsontext import JsonTooDeepError, loads_limited
 from treetraits.errors import ConfigError
 
 
@@ -55,7 +56,9 @@ def load_field_map(path: str | os.PathLike) -> list[FieldTree]:
 
 def parse_geojson(text: str, name: str = "field map") -> list[FieldTree]:
     try:
-        data = json.loads(text)
+        data = loads_limited(text)
+    except JsonTooDeepError as exc:
+        raise ConfigError(f"{name}: {exc}: not a field map") from None
     except json.JSONDecodeError as exc:
         raise ConfigError(
             f"{name}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})"

@@ -61,6 +61,30 @@ def _positive(value: float) -> str | None:
     return None if value > 0 else "must be > 0"
 
 
+def _between(low: float, high: float):
+    """Within a physical range (closed), named in the message: a finite number that no
+    robot can mean (an hour's timeout, a 10^18-item queue) is a typo, not a setting."""
+
+    def check(value: float) -> str | None:
+        return None if low <= value <= high else f"must be in [{_plain(low)}, {_plain(high)}]"
+
+    return check
+
+
+def _plain(number: float) -> str:
+    """1000000, not 1e+06; 0.01 as it is."""
+    return str(int(number)) if float(number).is_integer() else f"{number:g}"
+
+
+# Upper bounds of the service's numbers, and why (docs/service.md).
+MAX_PERIOD_S = 3600.0  # a timeout, period or status interval over an hour is no setting
+MAX_SOCKET_BUFFER = 2**31 - 1  # SO_RCVBUF is a C int in the kernel
+MAX_BAUD = 4_000_000  # the fastest rate Linux's termios offers (B4000000)
+MAX_QUEUE = 1_000_000  # a million LiDAR packets is 1.2 GB of memory, 22 min of data
+MAX_FILE_MB = 1024 * 1024  # 1 TiB: beyond any disk the robot carries
+MAX_GATE_M = 100.0  # a field-map match or "passed by" 100 m away is another block
+
+
 def _at_least(minimum: int):
     return lambda value: None if value >= minimum else f"must be >= {minimum}"
 
@@ -116,7 +140,7 @@ class OutputConfig:
         default=5.0,
         metadata=_key(
             "trees.geojson / trees.csv rewritten atomically this often, and at exit",
-            check=_positive,
+            check=_between(0.01, MAX_PERIOD_S),
         ),
     )
     # A stray cluster at the edge of view is seen once; at 10 Hz a real tree in range is
@@ -129,7 +153,7 @@ class OutputConfig:
         default=DEFAULT_GATE_M,
         metadata=_key(
             "a tree is matched to the nearest field-map tree within this distance (m)",
-            check=_positive,
+            check=_between(0.01, MAX_GATE_M),
         ),
     )
     # The rows either side of the robot's lane: in groves planted 5-7 m between rows they
@@ -140,7 +164,7 @@ class OutputConfig:
         metadata=_key(
             "a field-map tree the robot passed within this distance (m) and did not find is "
             "reported missing",
-            check=_positive,
+            check=_between(0.01, MAX_GATE_M),
         ),
     )
 
@@ -176,13 +200,19 @@ class LidarConfig:
     )
     rcvbuf_bytes: int = field(
         default=8388608,
-        metadata=_key("SO_RCVBUF asked for (capped at net.core.rmem_max)", check=_positive),
+        metadata=_key(
+            "SO_RCVBUF asked for (capped at net.core.rmem_max)",
+            check=_between(1, MAX_SOCKET_BUFFER),
+        ),
     )
     model: str = field(
         default="auto", metadata=_key("auto | vlp16 | puck-lite | puck-hires", check=_lidar_model)
     )
     silence_s: float = field(
-        default=1.0, metadata=_key("no packet for this long -> lidar DEGRADED", check=_positive)
+        default=1.0,
+        metadata=_key(
+            "no packet for this long -> lidar DEGRADED", check=_between(0.01, MAX_PERIOD_S)
+        ),
     )
 
 
@@ -198,7 +228,10 @@ class CameraConfig:
         ),
     )
     silence_s: float = field(
-        default=2.0, metadata=_key("no frame for this long -> camera DEGRADED", check=_positive)
+        default=2.0,
+        metadata=_key(
+            "no frame for this long -> camera DEGRADED", check=_between(0.01, MAX_PERIOD_S)
+        ),
     )
 
 
@@ -206,9 +239,14 @@ class CameraConfig:
 class GnssConfig:
     enabled: bool = field(default=True, metadata=_key("read the GNSS receiver"))
     port: str = field(default="/dev/gnss", metadata=_key("serial device", check=_nonempty))
-    baudrate: int = field(default=115200, metadata=_key("serial speed", check=_positive))
+    baudrate: int = field(
+        default=115200, metadata=_key("serial speed", check=_between(50, MAX_BAUD))
+    )
     silence_s: float = field(
-        default=3.0, metadata=_key("no sentence for this long -> gnss DEGRADED", check=_positive)
+        default=3.0,
+        metadata=_key(
+            "no sentence for this long -> gnss DEGRADED", check=_between(0.01, MAX_PERIOD_S)
+        ),
     )
 
 
@@ -223,9 +261,14 @@ class WheelsConfig:
         ),
     )
     port: str = field(default="/dev/jackal", metadata=_key("serial device", check=_nonempty))
-    baudrate: int = field(default=115200, metadata=_key("serial speed", check=_positive))
+    baudrate: int = field(
+        default=115200, metadata=_key("serial speed", check=_between(50, MAX_BAUD))
+    )
     silence_s: float = field(
-        default=2.0, metadata=_key("no bytes for this long -> wheels DEGRADED", check=_positive)
+        default=2.0,
+        metadata=_key(
+            "no bytes for this long -> wheels DEGRADED", check=_between(0.01, MAX_PERIOD_S)
+        ),
     )
 
 
@@ -237,33 +280,42 @@ class RecordConfig:
         metadata=_key("recordings go here, one per start", check=_nonempty, path=True),
     )
     max_file_mb: int = field(
-        default=1024, metadata=_key("rotate to a new file past this size", check=_positive)
+        default=1024,
+        metadata=_key("rotate to a new file past this size", check=_between(1, MAX_FILE_MB)),
     )
     chunk_kb: int = field(
         default=512,
-        metadata=_key("MCAP chunk size: about one second of all sensors", check=_positive),
+        metadata=_key(
+            "MCAP chunk size: about one second of all sensors", check=_between(1, MAX_FILE_MB)
+        ),
     )
     fsync_every_s: float = field(
-        default=1.0, metadata=_key("longest time between two fsyncs", check=_positive)
+        default=1.0,
+        metadata=_key("longest time between two fsyncs", check=_between(0.01, MAX_PERIOD_S)),
     )
 
 
 @dataclass(frozen=True)
 class QueuesConfig:
     lidar_packets: int = field(
-        default=8000, metadata=_key("~10 s at 754 packets/s", check=_at_least(1))
+        default=8000, metadata=_key("~10 s at 754 packets/s", check=_between(1, MAX_QUEUE))
     )
-    camera_frames: int = field(default=16, metadata=_key("JPEG frames", check=_at_least(1)))
-    gnss_sentences: int = field(default=2000, metadata=_key("NMEA sentences", check=_at_least(1)))
+    camera_frames: int = field(
+        default=16, metadata=_key("JPEG frames", check=_between(1, MAX_QUEUE))
+    )
+    gnss_sentences: int = field(
+        default=2000, metadata=_key("NMEA sentences", check=_between(1, MAX_QUEUE))
+    )
     wheel_chunks: int = field(
-        default=2000, metadata=_key("serial reads from the wheels", check=_at_least(1))
+        default=2000, metadata=_key("serial reads from the wheels", check=_between(1, MAX_QUEUE))
     )
 
 
 @dataclass(frozen=True)
 class ServiceSection:
     status_every_s: float = field(
-        default=2.0, metadata=_key("STATUS= line to systemd and a log line", check=_positive)
+        default=2.0,
+        metadata=_key("STATUS= line to systemd and a log line", check=_between(0.01, MAX_PERIOD_S)),
     )
     log_level: str = field(
         default="info", metadata=_key("debug | info | warning | error", check=_one_of(LOG_LEVELS))

@@ -247,6 +247,8 @@ class ReplayInputs:
     source: Input
     calibration: Calibration
     field_map: list
+    # Where the field map came from: "--field-map", "attachment", "config" or "none".
+    field_map_source: str = "none"
 
 
 def _attached_text(path: Path, data: bytes) -> str:
@@ -274,19 +276,20 @@ def open_replay(path: Path, options: ReplayOptions) -> ReplayInputs:
         else:
             calibration = Calibration()
         if options.field_map is not None:
-            field_map = load_field_map(options.field_map)
+            field_map, origin = load_field_map(options.field_map), "--field-map"
         elif source.field_map:
             field_map = parse_geojson(
                 _attached_text(path, source.field_map), f"{path} (attached field map)"
             )
+            origin = "attachment"
         elif cfg.pipeline.field_map:
-            field_map = load_field_map(Path(cfg.pipeline.field_map))
+            field_map, origin = load_field_map(Path(cfg.pipeline.field_map)), "config"
         else:
-            field_map = []
+            field_map, origin = [], "none"
     except BaseException:
         source.close()
         raise
-    return ReplayInputs(source, calibration, field_map)
+    return ReplayInputs(source, calibration, field_map, origin)
 
 
 def run_replay(
@@ -313,6 +316,11 @@ def run_replay(
         "method": cfg.pipeline.method,
         "traits": cfg.traits.method,
         "calibration": calibration.to_json(),
+        # What took the format's default (no camera: no NDVI), said, never silent.
+        "calibration_defaults": list(calibration.defaults),
+        # The field map used, and from where: a recording cut before its attachment
+        # replays without one, and says so (treetraits/cli/replay.py).
+        "field_map": {"source": inputs.field_map_source, "trees": len(field_map)},
     }
     writer = RunWriter(out_dir, processor, field_map, cfg.output, facts=summary)
     next_export = None

@@ -36,16 +36,15 @@ from pathlib import Path
 
 from treetraits import __version__
 from treetraits.drivers import recording as rec
-from treetraits.drivers.calibration import Calibration, load_calibration
-from treetraits.drivers.camera.sources import is_live_uri
+from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.times import NmeaClock
 from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.errors import ConfigError, TreetraitsError
-from treetraits.pipeline.fieldmap import load_field_map
 from treetraits.service.config import ServiceConfig, dump_config
 from treetraits.service.health import assess, status_line
 from treetraits.service.notify import Notifier
 from treetraits.service.outputs import OutputError, RunWriter
+from treetraits.service.preflight import check_start
 from treetraits.service.workers import (
     BoundedQueue,
     BridgeWorker,
@@ -55,7 +54,6 @@ from treetraits.service.workers import (
     LidarWorker,
     Message,
     Worker,
-    is_video_file,
 )
 
 log = logging.getLogger("treetraits.service")
@@ -135,35 +133,11 @@ class Service:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._signals = 0
+        self._stopped_by: str | None = None  # "SIGTERM", "SIGINT": the signal that stopped it
+        self._export_failed = False  # the last export did not go through
+        self._unprocessed = 0  # queued items the shutdown's drain limit left
 
     # --- start ---------------------------------------------------------------------------
-
-    def _calibration(self) -> Calibration:
-        path = self.cfg.pipeline.calibration
-        if not path:
-            return Calibration()
-        try:
-            return load_calibration(Path(path))
-        except TreetraitsError as exc:
-            raise ConfigError(f"pipeline.calibration: {exc}") from exc
-
-    def _field_map(self):
-        path = self.cfg.pipeline.field_map
-        if not path:
-            return [], None
-        try:
-            trees = load_field_map(Path(path))
-            return trees, Path(path).read_bytes()
-        except (TreetraitsError, OSError) as exc:
-            raise ConfigError(f"pipeline.field_map: {exc}") from exc
-
-    def _check_devices(self) -> None:
-        camera = self.cfg.camera
-        if camera.enabled and not is_live_uri(camera.device) and not is_video_file(camera.device):
-            raise ConfigError(
-                f"camera.device: {camera.device}: no such video file; a camera is auto, "
-                "usb:VID:PID, /dev/videoN, /dev/survey3n or a video file"
-            )
 
     def _make_workers(self) -> list[Worker]:
         cfg, q = self.cfg, self.cfg.queues
@@ -177,11 +151,7 @@ class Service:
         if cfg.wheels.enabled:
             kind = JackalWorker if cfg.wheels.kind == "jackal" else BridgeWorker
             workers.append(kind(cfg.wheels, self._queue("wheels", q.wheel_chunks)))
-        if not workers:
-            raise ConfigError(
-                "no sensor enabled: set enabled = true in [lidar], [camera], [gnss] or [wheels]"
-            )
-        return workers
+        return workers  # at least one: check_start refuses a config without a sensor
 
     def _queue(self, name: str, capacity: int) -> BoundedQueue:
         return BoundedQueue(name, capacity, self._wake)
@@ -206,51 +176,69 @@ class Service:
         log.info("recording to %s", path)
 
     def start(self) -> None:
-        """Everything up to READY=1. TreetraitsError for what the user must fix."""
-        self._stamp = utc_stamp()
-        self._check_devices()
-        calibration = self._calibration()
-        field_map, field_map_bytes = self._field_map()
-        self.workers = self._make_workers()
-        if self.process:
-            from treetraits.service.replay import make_processor
+        """Everything up to READY=1. TreetraitsError for what the user must fix.
 
-            self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
-            try:
-                self.run_dir = new_run_dir(Path(self.cfg.output.dir), self._stamp)
-            except OSError as exc:
-                raise ConfigError(
-                    f"output.dir: cannot make a run directory in {self.cfg.output.dir} "
-                    f"({exc.strerror or exc})"
-                ) from exc
-            self.writer = RunWriter(
-                self.run_dir,
-                self.processor,
-                field_map,
-                self.cfg.output,
-                facts={
-                    "software": f"treetraits {__version__}",
-                    "input": "live",
-                    "method": self.cfg.pipeline.method,
-                    "traits": self.cfg.traits.method,
-                    "started": self._stamp,
-                    "config": dump_config(self.cfg, comments=False),
-                    "calibration": calibration.to_json(),
-                },
-            )
-            log.info("run directory %s", self.run_dir)
+        The checks `config check` makes come first (`check_start`), then the devices are
+        opened; the run directory is made last, so a start that fails makes none and
+        leaves `runs/latest` where it was."""
+        self._stamp = utc_stamp()
+        recording = self.cfg.record.enabled or self.record_path is not None
+        inputs = check_start(
+            self.cfg,
+            process=self.process,
+            record=recording and self.record_path is None,
+        )
+        calibration = inputs.calibration
+        if calibration.describe_defaults():
+            log.warning("%s", calibration.describe_defaults())
+        self.workers = self._make_workers()
         try:
-            if self.cfg.record.enabled or self.record_path is not None:
-                self._open_recorder(calibration, field_map_bytes)
             for worker in self.workers:
                 # Only a LiDAR port we cannot bind is fatal: a serial device or a camera
                 # may be plugged in later.
                 worker.open(retry=not isinstance(worker, LidarWorker))
-        except TreetraitsError:
+            if recording:  # refused when its file exists (exit 4): before the run dir
+                self._open_recorder(calibration, inputs.field_map_bytes)
+            if self.process:
+                self._open_run(calibration, inputs.field_map)
+        except BaseException:
+            for worker in self.workers:
+                worker.stop()
             self._close_outputs()
             raise
         for worker in self.workers:
             worker.start()
+
+    def _open_run(self, calibration: Calibration, field_map: list) -> None:
+        from treetraits.service.replay import make_processor
+
+        self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
+        try:
+            self.run_dir = new_run_dir(Path(self.cfg.output.dir), self._stamp)
+        except OSError as exc:
+            raise ConfigError(
+                f"output.dir: cannot make a run directory in {self.cfg.output.dir} "
+                f"({exc.strerror or exc})"
+            ) from exc
+        self.writer = RunWriter(
+            self.run_dir,
+            self.processor,
+            field_map,
+            self.cfg.output,
+            facts={
+                "software": f"treetraits {__version__}",
+                "input": "live",
+                "method": self.cfg.pipeline.method,
+                "traits": self.cfg.traits.method,
+                "started": self._stamp,
+                "config": dump_config(self.cfg, comments=False),
+                "calibration": calibration.to_json(),
+                "calibration_defaults": list(calibration.defaults),
+                # Until the run ends cleanly: a run killed outright stays "running".
+                "end": "running",
+            },
+        )
+        log.info("run directory %s", self.run_dir)
 
     # --- the loop ------------------------------------------------------------------------
 
@@ -351,8 +339,15 @@ class Service:
         self.counters.scans += 1
 
     def _export(self) -> None:
-        if not self._attempt("export", self.writer.export):
+        self._export_failed = not self._attempt("export", self.writer.export)
+        if self._export_failed:
             self.counters.export_failures += 1
+
+    def end_state(self) -> str:
+        """How the run ended, as the store's `end` fact and the summary say it:
+        "interrupted (SIGTERM)" after a signal, "stopped" when asked from the code; a run
+        killed outright keeps the "running" it started with."""
+        return f"interrupted ({self._stopped_by})" if self._stopped_by else "stopped"
 
     def _attempt(self, kind: str, action, consequence: str = "") -> bool:
         """Run an output step; an OutputError is logged once while it lasts and shown in
@@ -417,6 +412,7 @@ class Service:
         self._signals += 1
         if self._signals > 1:
             os._exit(128 + signum)  # asked twice: no more flushing
+        self._stopped_by = signal.Signals(signum).name
         self._stop.set()
         self._wake.set()
 
@@ -434,6 +430,7 @@ class Service:
         left = sum(len(w.queue) for w in self.workers)
         self._handle_batch(left, deadline=begun + DRAIN_S)
         unhandled = sum(len(w.queue) for w in self.workers)
+        self._unprocessed = unhandled  # said in the run facts and the summary
         if unhandled:
             log.warning("stopping: %d queued items left unprocessed (drain limit)", unhandled)
         if self.processor is not None:
@@ -450,6 +447,8 @@ class Service:
             if not worker.join(JOIN_S):
                 log.warning("%s: receive thread still busy at exit", worker.name)
         summary = dict(self._numbers(), messages=self.counters.messages)
+        summary["end"] = self.end_state()
+        summary["unprocessed_at_stop"] = unhandled
         summary["store_failures"] = self.counters.store_failures
         summary["run_s"] = round(time.monotonic() - begun, 2)
         log.info("stopped: %s", json.dumps(summary))
@@ -483,6 +482,13 @@ class Service:
             "fixes": processor.stats.fixes,
             "frames": processor.stats.frames,
             "stopped": utc_stamp(),
+            "end": self.end_state(),
+            # Items still queued when the drain limit ran out: received, never processed
+            # nor recorded (a loop that lagged its sensors, e.g. on a loaded machine).
+            "unprocessed_at_stop": self._unprocessed,
+            # The exports were rewritten from the store's trees after the last scan, so
+            # they hold what it holds; if that failed they lag it, and say so here.
+            "exports": "behind the store" if self._export_failed else "level with the store",
         }
         try:
             self.writer.set_facts(facts)

@@ -88,11 +88,16 @@ def test_bad_inputs_are_one_line_naming_the_file_exit_2(survey, tmp_path, capsys
     broken = tmp_path / "broken_attachment.mcap"
     with rec.RecordingWriter(broken, calibration={}) as writer:
         writer.attach(rec.FIELD_MAP_NAME, b'{"type": "\xff\xfe', rec.FIELD_MAP_MEDIA_TYPE)
+    # One whose attached field map is nested 100 000 deep (the explicit depth limit).
+    deep_attached = tmp_path / "deep_attachment.mcap"
+    with rec.RecordingWriter(deep_attached, calibration={}) as writer:
+        writer.attach(rec.FIELD_MAP_NAME, deep_json.read_bytes(), rec.FIELD_MAP_MEDIA_TYPE)
     replay = ["replay", str(survey.recording), "--out", str(tmp_path / "out")]
     cases = [
         ([*replay, "--calibration", str(tmp_path)], f"{tmp_path}: cannot read the calibration"),
-        ([*replay, "--calibration", str(deep_json)], "deep.json: JSON nested too deeply"),
-        ([*replay, "--field-map", str(deep_json)], "deep.json: JSON nested too deeply"),
+        ([*replay, "--calibration", str(deep_json)], "deep.json: JSON nested 33+ levels deep"),
+        ([*replay, "--field-map", str(deep_json)], "deep.json: JSON nested 33+ levels deep"),
+        (["replay", str(deep_attached), "--out", str(tmp_path / "out")], "map): JSON nested 33+"),
         ([*replay, "--config", str(deep_toml)], "deep.toml: TOML nested too deeply"),
         (["replay", str(broken), "--out", str(tmp_path / "out")], "attached field map): not UTF-8"),
     ]
@@ -157,3 +162,22 @@ def test_ctrl_c_during_start_up_is_one_line_exit_130(survey, tmp_path, after_s):
     assert replay.returncode in INTERRUPTED_STATUS, err
     assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGINT)"]
     assert not list((tmp_path / "out").glob("[!.]*"))
+
+
+def test_sigterm_in_a_replay_is_one_line_exit_143_and_keeps_the_earlier_run(survey, tmp_path):
+    """`kill` (a CI runner's timeout, a supervisor) stops a replay as Ctrl-C does: what it
+    built is discarded, nothing is left half-written, the earlier run stays whole."""
+    out = tmp_path / "out"
+    assert main(["replay", str(survey.recording), "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
+    replay = _start(["replay", str(survey.recording), "--out", str(out), "--force"])
+    deadline = time.monotonic() + 120
+    while not list(out.glob(".treetraits.staging-*")) and replay.poll() is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    replay.send_signal(signal.SIGTERM)
+    _, err = replay.communicate(timeout=120)
+    assert replay.returncode == 143, err  # 128 + SIGTERM, docs/cli.md
+    assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGTERM)"]
+    assert {p.name: p.read_bytes() for p in out.glob("[!.]*")} == before
+    assert not list(out.glob(".treetraits.staging-*"))

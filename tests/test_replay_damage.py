@@ -5,12 +5,14 @@ loss") unless --allow-damaged."""
 from __future__ import annotations
 
 import json
+import random
 import sqlite3
 
 import pytest
 
 from tests.conftest import chunk_spans
 from treetraits.cli import main
+from treetraits.drivers import recording as rec
 from treetraits.errors import EXIT_DATA_LOSS
 from treetraits.sim.run import SurveySettings, simulate_survey
 
@@ -111,3 +113,50 @@ def test_a_recording_cut_at_60_percent_says_so(survey, intact, tmp_path, capsys)
 
     status, summary, _ = replay(cut, tmp_path / "out", capsys, "--force", "--allow-damaged")
     assert status == 0 and summary["truncated"] is True
+
+
+def test_sparse_bit_flips_are_reported_not_zero_trees_with_exit_0(survey, intact, tmp_path, capsys):
+    """Issue 14, case 2: 30 single-bit flips spread over the file used to replay as
+    "0 trees from 0 scans", exit 0. Every chunk a flip lands in fails its CRC and is
+    skipped; the rest is replayed and the loss is said."""
+    data = bytearray(survey.recording.read_bytes())
+    rng = random.Random(1)
+    for _ in range(30):
+        data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+    flipped = tmp_path / "flipped.mcap"
+    flipped.write_bytes(bytes(data))
+
+    status, summary, err = replay(flipped, tmp_path / "out", capsys)
+
+    assert status == EXIT_DATA_LOSS
+    assert summary["data_loss"] is True and summary["damaged_chunks"] >= 10
+    assert len(summary["lost"]) == summary["damaged_chunks"]
+    assert 0 < summary["scans"] < intact["scans"]
+    assert "damaged chunk(s) skipped" in err and err.count("\n") == 1
+
+
+def test_a_recording_cut_inside_its_attachment_says_the_field_map_is_lost(
+    survey, intact, tmp_path, capsys
+):
+    """The twin attaches its field map at the end: cut there, every scan is read but the
+    field map is gone, and the trees go unmatched. That is said, not silent."""
+    data = survey.recording.read_bytes()
+    name = data.find(rec.FIELD_MAP_NAME.encode())  # the attachment record (its index follows)
+    assert name > 0.9 * len(data)  # the attachment is at the end
+    cut = tmp_path / "cut_attachment.mcap"
+    cut.write_bytes(data[: name + 200])
+
+    status, summary, err = replay(cut, tmp_path / "out", capsys)
+
+    assert status == EXIT_DATA_LOSS
+    assert summary["truncated"] is True and summary["field_map"] == {"source": "none", "trees": 0}
+    assert summary["scans"] == intact["scans"] and summary["matched"] == 0
+    assert intact["matched"] == intact["trees"] > 0
+    assert "no field map was read" in err and "--field-map" in err
+
+    # Given the map, the same trees are matched again (the loss is the map, said).
+    status, summary, _ = replay(
+        cut, tmp_path / "out", capsys, "--force", "--field-map", str(survey.field_map)
+    )
+    assert status == EXIT_DATA_LOSS and summary["matched"] == intact["matched"]
+    assert summary["field_map"]["source"] == "--field-map"

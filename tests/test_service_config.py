@@ -63,11 +63,18 @@ def test_a_partial_file_keeps_the_other_defaults(tmp_path):
         ("[lidar]\nenabled = 1\n", "lidar.enabled must be true or false"),
         ("[lidar]\nsensor_ip = '192.168.1.300'\n", "lidar.sensor_ip must be an IPv4 or IPv6"),
         ("[lidar]\nmodel = 'hdl64'\n", "lidar.model unknown LiDAR model"),
-        ("[gnss]\nsilence_s = 0\n", "gnss.silence_s must be > 0"),
+        ("[gnss]\nsilence_s = 0\n", "gnss.silence_s must be in [0.01, 3600]"),
+        ("[gnss]\nsilence_s = 1e300\n", "gnss.silence_s must be in [0.01, 3600]"),
+        ("[gnss]\nbaudrate = 1000000000\n", "gnss.baudrate must be in [50, 4000000]"),
+        ("[lidar]\nrcvbuf_bytes = 4294967296\n", "lidar.rcvbuf_bytes must be in [1, 2147483647]"),
+        ("[output]\nexport_every_s = 1e12\n", "output.export_every_s must be in [0.01, 3600]"),
+        ("[output]\nmatch_gate_m = 5000.0\n", "output.match_gate_m must be in [0.01, 100]"),
+        ("[record]\nmax_file_mb = 9999999999\n", "record.max_file_mb must be in [1, 1048576]"),
         ("[gnss]\nsilence_s = nan\n", "gnss.silence_s must be a finite number"),
         ("[wheels]\nkind = 'tractor'\n", "wheels.kind must be one of jackal, bridge"),
         ("[pipeline]\nmethod = 'best'\n", "pipeline.method must be one of paper, rph"),
-        ("[queues]\nlidar_packets = 0\n", "queues.lidar_packets must be >= 1"),
+        ("[queues]\nlidar_packets = 0\n", "queues.lidar_packets must be in [1, 1000000]"),
+        ("[queues]\nwheel_chunks = 10000000000\n", "queues.wheel_chunks must be in [1, 1000000]"),
         ("[service]\nlog_level = 'loud'\n", "service.log_level must be one of"),
         ("lidar = 3\n", "lidar must be a [lidar] table"),
     ],
@@ -129,7 +136,9 @@ def test_config_dump_and_check_commands(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert load_config(write(tmp_path, printed)).gnss.port == "/dev/ttyUSB3"
     assert 'port = "/dev/ttyUSB3"' in printed and "[queues]" in printed
+    # check also sees that output.dir can be written (as run's start does).
+    path = write(tmp_path, f"[gnss]\nport = '/dev/ttyUSB3'\n[output]\ndir = '{tmp_path}'\n")
     assert cli(["config", "check", str(path)]) == 0
-    assert capsys.readouterr().out.strip() == f"{path}: ok"
-    with pytest.raises(ConfigError, match=r"gnss\.baudrate must be > 0"):
+    assert capsys.readouterr().out.splitlines()[0] == f"{path}: ok"
+    with pytest.raises(ConfigError, match=r"gnss\.baudrate must be in \[50, 4000000\]"):
         cli(["config", "check", str(write(tmp_path, "[gnss]\nbaudrate = -1\n"))])

@@ -10,6 +10,7 @@ a full disk (RLIMIT_FSIZE) and a config error.
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import re
@@ -251,6 +252,11 @@ def test_live_survey_end_to_end(survey, tmp_path):
     assert scans >= 0.8 * survey.duration_s * 10  # 10 Hz, the first and last ones aside
     facts = dict(db.execute("SELECT key, value FROM run"))
     assert facts["input"] == "live" and facts["world_frame"] == "utm"
+    assert facts["end"] == "interrupted (SIGTERM)"
+    assert facts["exports"] == "level with the store"
+    unprocessed = int(facts["unprocessed_at_stop"])
+    assert f'"unprocessed_at_stop": {unprocessed}' in service.stderr()
+    assert_exports_level(run)
     rows = (run / "trees.csv").read_text().splitlines()
     assert rows[0].startswith("tree_id,field_id,row,easting,northing")
     matched = [r.split(",")[1] for r in rows[1:] if r.split(",")[1]]
@@ -265,7 +271,11 @@ def test_live_survey_end_to_end(survey, tmp_path):
         recorded = [(m.topic, m.data, m.publish_time) for m in recording]
         assert not recording.truncated
     topics = [topic for topic, _, _ in recorded]
-    assert topics.count(rec.LIDAR_PACKETS) == player.counters["lidar_sent"]
+    # Every packet played is recorded, but those the drain limit left queued at the stop
+    # (a loop behind its sensors on a loaded machine: 747 items once here), now counted.
+    recorded_lidar = topics.count(rec.LIDAR_PACKETS)
+    assert player.counters["lidar_sent"] - unprocessed <= recorded_lidar
+    assert recorded_lidar <= player.counters["lidar_sent"]
     assert {rec.CAMERA_JPEG, rec.GNSS_NMEA, rec.WHEELS_JACKAL} <= set(topics)
     # GNSS publish_time is the epoch's UTC from the sentences, as the simulator wrote it
     # (the service's clock is hours off the simulated survey's: receive times would show).
@@ -279,6 +289,125 @@ def test_live_survey_end_to_end(survey, tmp_path):
     day = 86_400 * 10**9
     assert [t % day for _, t in gnss[:dated]] == [t % day for _, t in played[:dated]]
     assert gnss[dated:] == played[dated : len(gnss)]
+
+
+def assert_exports_level(run: Path) -> None:
+    """trees.csv and trees.geojson hold exactly the store's trees: the same found trees
+    with the same observation counts, the same number of missing ones."""
+    with sqlite3.connect(run / "traits.sqlite") as db:
+        stored = db.execute("SELECT tree_id, observations, status FROM trees").fetchall()
+    found = sorted((t, n) for t, n, status in stored if status == "found")
+    missing = sum(status == "missing" for _, _, status in stored)
+    with open(run / "trees.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert (
+        sorted((r["tree_id"], int(r["observations"])) for r in rows if r["status"] == "found")
+        == found
+    )
+    assert sum(r["status"] == "missing" for r in rows) == missing
+    features = json.loads((run / "trees.geojson").read_text())["features"]
+    assert (
+        sorted(
+            (f["properties"]["tree_id"], f["properties"]["observations"])
+            for f in features
+            if f["properties"]["status"] == "found"
+        )
+        == found
+    )
+
+
+def test_ctrl_c_mid_run_exports_the_store_and_marks_the_run_interrupted(survey, tmp_path):
+    """Issue 14, case 8: SIGINT while the trees come in. The exports are rewritten from
+    the store after the last scan, and the store and the summary say the run was
+    interrupted."""
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    config = write_config(tmp_path, survey, player, camera="enabled = false")
+    service = Service(tmp_path, config)
+    try:
+        service.wait_ready()
+        player.start()
+        service.wait_for(lambda s: counter(s, "trees") >= 2, 60, "with 2 trees")
+        service.proc.send_signal(signal.SIGINT)
+        code = service.proc.wait(timeout=30)
+    finally:
+        player.close()
+        service.close()
+    assert code == 0, service.stderr()
+    run = (tmp_path / "out" / "runs" / "latest").resolve()
+    facts = dict(open_db(run / "traits.sqlite").execute("SELECT key, value FROM run"))
+    assert facts["end"] == "interrupted (SIGINT)"
+    assert facts["exports"] == "level with the store"
+    assert int(facts["scans"]) > 0
+    assert_exports_level(run)
+    assert '"end": "interrupted (SIGINT)"' in service.stderr()  # the summary line
+
+
+def _trees_by_field_id(store: Path) -> dict[str, tuple]:
+    with sqlite3.connect(store) as db:
+        rows = db.execute(
+            "SELECT field_id, tree_id, width_m, height_m, ndvi FROM trees "
+            "WHERE status = 'found' AND field_id IS NOT NULL"
+        ).fetchall()
+    return {field_id: rest for field_id, *rest in rows}
+
+
+def _within(a: float | None, b: float | None, rel: float) -> bool:
+    if a is None or b is None:
+        return a is b
+    return abs(a - b) <= rel * max(abs(a), abs(b))
+
+
+def test_live_and_replay_write_the_same_trees(survey, tmp_path):
+    """Issue 14, case 9: the twin recording played into `treetraits run --record` (LiDAR
+    over UDP, GNSS and wheels over ptys, the camera from a video), then replayed. The
+    replay of what the service recorded writes the service's trees (same ids, traits
+    within 1 %: they come out equal). The replay of the twin recording itself finds the
+    same field-map trees; its traits are not held to 1 % here: the live run sees fewer
+    scans (86-87 against 98-99 observations) and its camera is a video read from the
+    service's start, not the twin's exposures (measured gaps in docs/service.md)."""
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    config = write_config(tmp_path, survey, player)
+    service = Service(tmp_path, config, "--record")
+    try:
+        service.wait_ready()
+        player.start()
+        assert player.wait(timeout=survey.duration_s + 30)
+        played = player.counters["lidar_sent"]
+        service.wait_for(
+            lambda s: counter(s, "lidar_packets") + max(counter(s, "kernel_drops"), 0) >= played,
+            20,
+            "with every played packet taken",
+        )
+        code, _ = service.terminate()
+    finally:
+        player.close()
+        service.close()
+    assert code == 0, service.stderr()
+    live = _trees_by_field_id((tmp_path / "out" / "runs" / "latest" / "traits.sqlite").resolve())
+    assert len(live) >= 4
+
+    (recording,) = sorted((tmp_path / "recordings").glob("*.mcap"))
+    for name, source in (("of-the-live-run", recording), ("of-the-twin", survey.recording)):
+        out = tmp_path / f"replay-{name}"
+        result = subprocess.run(
+            [sys.executable, "-m", "treetraits", "replay", str(source), "--out", str(out)],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert result.returncode == 0, result.stderr
+        replayed = _trees_by_field_id(out / "traits.sqlite")
+        assert set(replayed) == set(live), name
+        if name != "of-the-live-run":
+            continue
+        # The very messages the service processed, in its order: the same trees.
+        for field_id, (tree_id, width, height, ndvi) in replayed.items():
+            live_id, live_width, live_height, live_ndvi = live[field_id]
+            assert tree_id == live_id
+            assert _within(width, live_width, 0.01), (field_id, width, live_width)
+            assert _within(height, live_height, 0.01), (field_id, height, live_height)
+            assert _within(ndvi, live_ndvi, 0.01), (field_id, ndvi, live_ndvi)
 
 
 def test_gnss_unplugged_then_kill_9_and_restart(survey, tmp_path):
@@ -311,6 +440,8 @@ def test_gnss_unplugged_then_kill_9_and_restart(survey, tmp_path):
     db = open_db(killed_run / "traits.sqlite")  # opens clean: WAL recovered
     scans = db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0]
     assert scans >= 20
+    # Killed outright: it never said how it ended, so it does not look complete.
+    assert dict(db.execute("SELECT key, value FROM run"))["end"] == "running"
     db.close()
 
     # The closed pty's /dev/pts number may already belong to another program's pty: the

@@ -165,3 +165,29 @@ def test_sim_command_refuses_bad_field_conditions(tmp_path, capsys):
     ):
         assert main(["sim", "--out", out, *bad]) == 2, bad
     assert "--slope must be a finite number" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("bad", "message"),
+    [
+        (["--goal", "-1"], "--goal must be a finite number in [0.1, 1000], got -1.0"),
+        (["--goal", "1e9"], "--goal must be a finite number in [0.1, 1000]"),
+        (["--goal", "inf"], "--goal must be a finite number in [0.1, 1000], got inf"),
+        (["--outage", "5:1"], "--outage START must come before END, got '5:1'"),
+        (["--outage", "nan:5"], "--outage START must be a finite number in [0, 86400]"),
+        (["--outage", "0:1e12"], "--outage END must be a finite number in [0, 86400]"),
+        (["--slope", "inf"], "--slope must be a finite number in [-0.15, 0.15], got inf"),
+        (["--grid", "1e300x5"], "--grid values must be finite and in [0.5, 30]"),
+        (["--layout", "1000x1000"], "--layout values must be finite and in [1, 50]"),
+        (["--layout", "0x3"], "--layout values must be finite and in [1, 50]"),
+        (["--seed", "-1"], "--seed must be a non-negative integer, got -1"),
+    ],
+)
+def test_sim_options_name_the_option_and_its_range(tmp_path, capsys, bad, message):
+    """Issue 14, case 6: each refused with one line (exit 2), nothing written."""
+    out = tmp_path / "x.mcap"
+    assert main(["sim", "--out", str(out), *bad]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("treetraits: error: ") and err.count("\n") == 1, err
+    assert message in err
+    assert list(tmp_path.iterdir()) == []

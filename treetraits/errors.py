@@ -14,6 +14,7 @@ EXIT_OUTPUT_EXISTS = 4  # an earlier run's outputs are there; --force replaces t
 EXIT_OUTPUT_BUSY = 5  # another run is writing the same output
 EXIT_IO = 6  # the system refused a read or write: permission, disk full, not a directory
 EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
+EXIT_TERMINATED = 143  # SIGTERM (128 + 15): kill, a CI runner's timeout
 
 
 class TreetraitsError(Exception):

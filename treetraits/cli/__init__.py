@@ -15,7 +15,13 @@ import sys
 import threading
 
 from treetraits import __version__
-from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_USAGE, TreetraitsError
+from treetraits.errors import (
+    EXIT_INTERRUPTED,
+    EXIT_IO,
+    EXIT_TERMINATED,
+    EXIT_USAGE,
+    TreetraitsError,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.run(args) or 0)
     except TreetraitsError as exc:
         return _fail(str(exc), exc.exit_code)
+    except Terminated:
+        return _fail("interrupted (SIGTERM)", EXIT_TERMINATED)
     except KeyboardInterrupt:
         return _fail(INTERRUPTED, EXIT_INTERRUPTED)
     except BrokenPipeError:  # e.g. `treetraits lidar info x | head`
@@ -99,26 +107,39 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(INTERRUPTED, EXIT_INTERRUPTED)
         raise
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 INTERRUPTED = "interrupted (SIGINT)"
 
 
-def _watch_interrupt(event: threading.Event):
-    """Make Ctrl-C raise KeyboardInterrupt as Python's own handler does, and set `event`.
-    Left alone when SIGINT is ignored (a background job) or handled by someone else, and
-    off the main thread. The handler to put back, or None."""
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (`kill`, a CI runner's timeout, systemd): stopped as Ctrl-C stops a command
+    (a replay discards what it built, the earlier outputs stay), with its own exit code.
+    `run` and `record` install their own handler: a clean stop with a final export."""
+
+
+def _watch_interrupt(event: threading.Event) -> dict:
+    """Make Ctrl-C raise KeyboardInterrupt as Python's own handler does (SIGTERM:
+    `Terminated`), and set `event`. Each is left alone when ignored (a background job) or
+    handled by someone else, and off the main thread. The handlers to put back."""
 
     def interrupt(signum, frame):
         event.set()
         raise KeyboardInterrupt
 
+    def terminate(signum, frame):
+        event.set()
+        raise Terminated
+
+    previous = {}
     with contextlib.suppress(ValueError):  # not the main thread
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-            return signal.signal(signal.SIGINT, interrupt)
-    return None
+            previous[signal.SIGINT] = signal.signal(signal.SIGINT, interrupt)
+        if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+            previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, terminate)
+    return previous
 
 
 def _fail(message: str, code: int) -> int:

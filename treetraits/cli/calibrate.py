@@ -79,10 +79,14 @@ def _box(text: str) -> Box:
 
 
 def _read_json(path: Path, what: str) -> Any:
+    from treetraits.drivers.jsontext import JsonTooDeepError, loads_limited
+
     try:
-        return json.loads(path.read_text())
+        return loads_limited(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such {what} file") from None
+    except JsonTooDeepError as exc:
+        raise ConfigError(f"{path}: {exc}: not a {what} file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: {what} file is not valid JSON ({exc})") from exc
 
@@ -208,7 +212,7 @@ def run_reflectance(args: argparse.Namespace) -> int:
 def _write_reflectance(path: Path, section: dict[str, list[float]]) -> None:
     """Replace the `reflectance` section of `path` (other sections kept), checked by the
     calibration loader before the file is atomically replaced."""
-    from treetraits.drivers.calibration import load_calibration
+    from treetraits.drivers.calibration import Calibration, load_calibration
 
     data: dict[str, Any] = {}
     if path.exists():
@@ -217,7 +221,9 @@ def _write_reflectance(path: Path, section: dict[str, list[float]]) -> None:
             raise ConfigError(f"{path}: expected a JSON object (calibration v1)")
     data["reflectance"] = section
     try:
-        load_calibration(data)
+        # A new file holds only the reflectance: checked on the defaults' geometry, it
+        # still needs the robot's own (T_base_lidar...) before a command takes it.
+        load_calibration(data if path.exists() else {**Calibration().to_json(), **data})
     except CalibrationError as exc:
         raise CalibrationError(f"{path}: not written: {exc}") from exc
     text = json.dumps(data, indent=2) + "\n"

@@ -29,6 +29,14 @@ def register(commands: argparse._SubParsersAction) -> None:
     check = actions.add_parser(
         "check",
         help="check a config file; exit 0 when valid, 2 with the bad key named otherwise",
+        description=(
+            "Make every start-up check of `treetraits run` that needs no device, without "
+            "starting anything: the keys and their ranges, the LiDAR's two ports, a sensor "
+            "enabled, the camera's video file, the calibration and field-map files, and "
+            "that output.dir (and record.dir when recording) can be written. Only binding "
+            "the LiDAR's port is left to the start. Exit 0 when run would start, 2 with "
+            "the key named otherwise."
+        ),
     )
     check.add_argument("file", type=Path, help="config file (TOML)")
     check.set_defaults(run=run_check)
@@ -43,7 +51,13 @@ def run_dump(args: argparse.Namespace) -> int:
 
 def run_check(args: argparse.Namespace) -> int:
     from treetraits.service.config import load_config
+    from treetraits.service.preflight import check_start
 
-    load_config(args.file)
+    cfg = load_config(args.file)
+    # The very checks `run` makes at start (service/preflight.py), not a twin of them.
+    inputs = check_start(cfg, process=True, record=cfg.record.enabled, as_service=False)
     print(f"{args.file}: ok")
+    defaulted = inputs.calibration.describe_defaults()
+    for note in ([defaulted] if defaulted else []) + list(inputs.notes):
+        print(f"note: {note}")
     return 0

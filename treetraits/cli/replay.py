@@ -127,6 +127,9 @@ def run(args: argparse.Namespace) -> int:
         inputs=(args.input, args.nmea, args.calibration, args.field_map, args.config),
     )
     inputs = open_replay(args.input, options)
+    defaulted = inputs.calibration.describe_defaults()
+    if defaulted:
+        print(f"treetraits: note: {defaulted}", file=sys.stderr)
     start = time.perf_counter()
     try:
         # Progress in bytes of sensor data (a recording is compressed: no total to show).
@@ -167,6 +170,13 @@ def format_loss(summary: dict) -> str:
         parts.append(f"{summary['damaged_chunks']} damaged chunk(s) skipped")
     if summary["truncated"]:
         parts.append("the file is cut short")
+        if summary["field_map"]["source"] == "none":
+            # The simulator attaches the field map at the end of its recording (the live
+            # recorder at the start): cut, it is lost and the trees go unmatched.
+            parts.append(
+                "no field map was read (one attached to the recording would be in the part "
+                "cut off; give --field-map FILE)"
+            )
     spans = "; ".join(
         f"between {s['from'] or 'the start'} and {s['to'] or 'the end'}" for s in summary["lost"]
     )

@@ -43,7 +43,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="trees: columns across x rows along the path (default 2x3)",
     )
     sim.add_argument("--path", choices=PATHS, default="straight", help="default straight")
-    sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sim.add_argument(
+        "--seed", type=int, default=0, help="random seed, a non-negative integer (default 0)"
+    )
     sim.add_argument("--out", required=True, type=Path, help="recording to write (.mcap)")
     sim.add_argument(
         "--force",
@@ -82,7 +84,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="ground slope along the rows (the path), rise over run, within +-0.15 "
         "(default 0); the robot pitches with the ground under its wheels",
     )
-    sim.add_argument("--goal", type=float, default=23.0, help="metres to drive (default 23)")
+    sim.add_argument(
+        "--goal", type=float, default=23.0, help="metres to drive, 0.1-1000 (default 23)"
+    )
     sim.add_argument(
         "--wind",
         type=float,
@@ -231,14 +235,38 @@ def register(commands: argparse._SubParsersAction) -> None:
     sim.set_defaults(run=run_sim)
 
 
-def _pair(text: str, what: str, kind=float) -> tuple:
+# Physical ranges of the twin's options, and why (docs/sim_replay.md).
+# Orchards plant 1-12 m apart (high-density apples to old walnuts); 30 m is no orchard.
+GRID_M = (0.5, 30.0)
+# Trees per row and rows in the block: the twin is meant for blocks of tens of trees; a
+# 10 000-tree block takes hours to simulate and is a typo.
+LAYOUT = (1, 50)
+# A survey lasts at most a day of recorded time (GNSS outages, convergence, clock offset).
+DAY_S = 86400.0
+
+
+def _pair(text: str, what: str, kind=float, limits: tuple = GRID_M) -> tuple:
     try:
         a, b = (kind(v) for v in text.lower().split("x"))
     except ValueError:
         raise ConfigError(f"{what} must look like 5x5, got {text!r}") from None
-    if not (a > 0 and b > 0 and math.isfinite(a) and math.isfinite(b)):
-        raise ConfigError(f"{what} must be positive and finite, got {text!r}")
+    low, high = limits
+    if not all(math.isfinite(v) and low <= v <= high for v in (a, b)):
+        raise ConfigError(f"{what} values must be finite and in [{low:g}, {high:g}], got {text!r}")
     return a, b
+
+
+def _outage(text: str) -> tuple[float, float]:
+    """START:END seconds from the start, START before END, within a day."""
+    try:
+        start, end = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise ConfigError(f"--outage must look like 10:25, got {text!r}") from None
+    _within("--outage START", start, 0, DAY_S)
+    _within("--outage END", end, 0, DAY_S)
+    if not start < end:
+        raise ConfigError(f"--outage START must come before END, got {text!r}")
+    return start, end
 
 
 def _antenna(text: str) -> tuple[float, float, float]:
@@ -291,14 +319,8 @@ def run_sim(args: argparse.Namespace) -> int:
     from treetraits.sim.wheels import WheelSettings
 
     width, length = _pair(args.grid, "--grid")
-    columns, rows = _pair(args.layout, "--layout", int)
-    outages = []
-    for text in args.outage:
-        try:
-            start, end = (float(v) for v in text.split(":"))
-        except ValueError:
-            raise ConfigError(f"--outage must look like 10:25, got {text!r}") from None
-        outages.append((start, end))
+    columns, rows = _pair(args.layout, "--layout", int, LAYOUT)
+    outages = [_outage(text) for text in args.outage]
     if not 0 <= args.wind < 60:
         raise ConfigError(f"--wind is a speed in m/s in [0, 60), got {args.wind:g}")
     _within("--wind-direction", args.wind_direction, -360, 360)
@@ -310,6 +332,8 @@ def run_sim(args: argparse.Namespace) -> int:
     _within("--old", args.old, 0, 1)
     _within("--irregular", args.irregular, 0, 1)
     _within("--goal", args.goal, 0.1, 1000)
+    if args.seed < 0:  # NumPy's generators take non-negative seeds only
+        raise ConfigError(f"--seed must be a non-negative integer, got {args.seed}")
     if args.young + args.old > 1:
         raise ConfigError(f"--young + --old must be <= 1, got {args.young + args.old:g}")
     if not 0 <= args.missing <= columns * rows:
@@ -317,9 +341,9 @@ def run_sim(args: argparse.Namespace) -> int:
     if not 0 <= args.weeds <= 5000:
         raise ConfigError(f"--weeds is a number of clumps in [0, 5000], got {args.weeds}")
     _within("--field-heading", args.field_heading, -360, 360)
-    _within("--host-clock-offset", args.host_clock_offset, -86400, 86400)
+    _within("--host-clock-offset", args.host_clock_offset, -DAY_S, DAY_S)
     if args.gnss_converge is not None:
-        _within("--gnss-converge", args.gnss_converge, 0, 86400)
+        _within("--gnss-converge", args.gnss_converge, 0, DAY_S)
     if args.wires and not args.posts:
         raise ConfigError("--wires hang between posts: add --posts")
     settings = SurveySettings(
