@@ -179,6 +179,11 @@ class ClusterConfig:
     # person pressed into the foliage stays part of the crown (nothing tells them apart).
     stem_clearance_m: float = 0.5
     max_stem_surround_share: float = 0.25
+    # Crowns are clustered on the voxels that reach this high above the terrain; what
+    # lies lower joins the crown it touches and never links two (`pipeline.understorey`).
+    # 0.6 m: weeds and cover crop end there, a drip line hangs at 0.3-0.4 m, and citrus
+    # skirts have begun by then; the youngest trees mapped (1.0 m) reach above it.
+    bridge_min_height_m: float = 0.6
     # "kdtree": scipy cKDTree pairs + connected components; "dbscan": open3d
     # `cluster_dbscan(eps, min_points=1)`. Same clusters; see docs for the timing.
     method: str = "kdtree"
@@ -364,6 +369,7 @@ def _validate_detection(d: DetectionConfig) -> None:
     _need(k.max_trunk_width_m > 0, "detection.cluster.max_trunk_width_m must be > 0")
     _need(k.min_trunk_points >= 1, "detection.cluster.min_trunk_points must be >= 1")
     _need(k.min_tree_spacing_m > 0, "detection.cluster.min_tree_spacing_m must be > 0")
+    _need(k.bridge_min_height_m >= 0, "detection.cluster.bridge_min_height_m must be >= 0")
     _need(k.stem_radius_m > 0, "detection.cluster.stem_radius_m must be > 0")
     _need(k.min_stem_height_m >= 0, "detection.cluster.min_stem_height_m must be >= 0")
     _need(k.stem_judged_from_m >= 0, "detection.cluster.stem_judged_from_m must be >= 0")

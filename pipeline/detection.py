@@ -16,6 +16,7 @@ from functools import cached_property
 import numpy as np
 
 from treetraits.pipeline.classify import Shape, horizontal_extent, judge, shape_of
+from treetraits.pipeline.clustering import euclidean_clusters
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -25,6 +26,7 @@ from treetraits.pipeline.config import (
 )
 from treetraits.pipeline.stems import find_stems, stem_of_voxels
 from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
+from treetraits.pipeline.understorey import join_understorey
 
 # Voxel keys: 21 bits per axis (+-1M cells: +-100 km at 0.1 m), packed into one int64.
 _KEY_BITS = 21
@@ -218,44 +220,6 @@ def voxel_grid(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     return inverse, centroids
 
 
-def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree") -> np.ndarray:
-    """Single-linkage clusters: two points closer than `tolerance` share a cluster.
-    Labels 0.. numbered by each cluster's first point (deterministic)."""
-    n = len(xyz)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64)
-    if method == "dbscan":
-        import open3d as o3d
-
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
-        labels = np.asarray(cloud.cluster_dbscan(tolerance, 1, print_progress=False))
-        _, first, labels = np.unique(labels, return_index=True, return_inverse=True)
-        rank = np.empty(len(first), dtype=np.int64)
-        rank[np.argsort(first, kind="stable")] = np.arange(len(first))
-        return rank[labels.ravel()]
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    pairs = cKDTree(xyz).query_pairs(tolerance, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs), dtype=bool), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    return labels.astype(np.int64)
-
-
-def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, tolerance: float):
-    """Label of the nearest anchor within `tolerance` for each point, -1 where none."""
-    if len(points) == 0 or len(anchors) == 0:
-        return np.full(len(points), -1, dtype=np.int64)
-    from scipy.spatial import cKDTree
-
-    distance, index = cKDTree(anchors).query(points, distance_upper_bound=tolerance)
-    found = np.isfinite(distance)
-    out = np.full(len(points), -1, dtype=np.int64)
-    out[found] = labels[index[found]]
-    return out
-
-
 def hull_area_volume(xyz: np.ndarray) -> tuple[float, float]:
     """Surface area and volume of the 3D convex hull; (0, 0) when it is degenerate."""
     if len(xyz) < 4:
@@ -328,23 +292,35 @@ def detect(
 
     # Posts and people are cut out first, each its own cluster (`pipeline.stems`).
     lidar_xy = T_base_lidar[:2, 3]
-    stem_of = _stems(xyz, height, ring, T_base_lidar[:3, 3], voxels, ground, config)
+    voxel_height = ground.height(voxels)
+    blobs = _band_blobs(xyz, height, config.cluster)
+    stem_of = _stems(xyz, height, ring, T_base_lidar[:3, 3], blobs, voxels, voxel_height, config)
     counts["stems"] = int(stem_of.max(initial=-1) + 1)
     clock.lap("stems")
 
-    # Euclidean clustering of the voxels clear of the ground; skirt voxels only join the
-    # cluster they touch, so they can neither start a cluster nor bridge two.
+    # Crowns: Euclidean clustering of the voxels that reach above the understorey. What
+    # lies lower (trunks, skirts, weeds, drip lines) joins the crown it touches and
+    # never links two (`pipeline.understorey`).
+    top = np.full(len(voxels), -np.inf)
+    np.maximum.at(top, voxel_of, height)
+    free = stem_of < 0
+    crown = core & free & (top >= config.cluster.bridge_min_height_m)
     labels = np.full(len(voxels), -1, dtype=np.int64)
-    crown = core & (stem_of < 0)
-    core_index = np.flatnonzero(crown)
-    labels[core_index] = euclidean_clusters(
-        voxels[core_index], config.cluster.tolerance_m, config.cluster.method
+    crown_index = np.flatnonzero(crown)
+    labels[crown_index] = euclidean_clusters(
+        voxels[crown_index], config.cluster.tolerance_m, config.cluster.method
     )
-    loose = ~core & (stem_of < 0)
-    if loose.any():
-        labels[loose] = attach(
-            voxels[loose], voxels[core_index], labels[core_index], config.cluster.tolerance_m
-        )
+    under = free & ~crown
+    trunk_like = _near_blobs(voxels, voxel_height, blobs, stem_of, config.cluster)
+    labels[under] = join_understorey(
+        voxels,
+        labels,
+        under,
+        core,
+        trunk_like,
+        config.cluster.tolerance_m,
+        int(labels.max(initial=-1)) + 1,
+    )
     stemmed = stem_of >= 0
     labels[stemmed] = labels.max(initial=-1) + 1 + stem_of[stemmed]
     labels, counts["split"] = split_at_trunks(labels, voxel_of, voxels, xyz, height, config.cluster)
@@ -391,13 +367,11 @@ def split_at_trunks(
     if not long:
         return labels, 0
     point_label = labels[voxel_of]
-    low, high = config.trunk_band_m
     next_label = int(labels.max(initial=-1)) + 1
     cut = 0
     for cells in long:
         members = np.flatnonzero(point_label == labels[cells[0]])
-        band = members[(height[members] >= low) & (height[members] <= high)]
-        trunks = _trunks(xyz[band, :2], config)
+        trunks = _trunks(xyz[members], height[members], config)
         if len(trunks) < 2:
             continue
         gaps = voxels[cells, None, :2] - trunks[None]
@@ -408,21 +382,39 @@ def split_at_trunks(
     return labels, cut
 
 
-def _stems(xyz, height, ring, lidar_xyz, voxels, ground, config: DetectionConfig) -> np.ndarray:
+def _stems(
+    xyz, height, ring, lidar_xyz, blobs, voxels, voxel_height, config: DetectionConfig
+) -> np.ndarray:
     """The stem (`pipeline.stems`) each voxel belongs to, -1 for none."""
     cluster = config.cluster
-    if cluster.min_stem_height_m <= 0:
+    if cluster.min_stem_height_m <= 0 or not blobs:
         return np.full(len(voxels), -1, dtype=np.int64)
-    low, high = cluster.trunk_band_m
-    band = (height >= low) & (height <= high)
-    centres = np.array([centre for _, centre in _band_blobs(xyz[band, :2], cluster)])
+    centres = np.array([centre for _, centre in blobs])
     stems = find_stems(xyz, height, ring, lidar_xyz, centres, cluster, config.classify)
-    return stem_of_voxels(voxels, ground.height(voxels), stems, cluster)
+    return stem_of_voxels(voxels, voxel_height, stems, cluster)
 
 
-def _band_blobs(xy: np.ndarray, config: ClusterConfig) -> list[tuple[int, np.ndarray]]:
+def _near_blobs(voxels, voxel_height, blobs, stem_of, config: ClusterConfig) -> np.ndarray:
+    """Voxels of the trunk band's blobs that are not stems: trunks."""
+    near = np.zeros(len(voxels), dtype=bool)
+    if not blobs:
+        return near
+    centres = np.array([centre for _, centre in blobs])
+    low = voxel_height <= config.trunk_band_m[1] + config.voxel_m
+    gaps = np.hypot(
+        voxels[:, None, 0] - centres[None, :, 0], voxels[:, None, 1] - centres[None, :, 1]
+    )
+    near = low & (gaps.min(axis=1) <= config.max_trunk_width_m / 2 + config.voxel_m / 2)
+    return near & (stem_of < 0)
+
+
+def _band_blobs(
+    xyz: np.ndarray, height: np.ndarray, config: ClusterConfig
+) -> list[tuple[int, np.ndarray]]:
     """Blobs of the trunk band's returns (x-y) 0.25 m apart at most, no wider than
     `max_trunk_width_m`: (returns, centre) of each. Trunks, posts and legs."""
+    low, high = config.trunk_band_m
+    xy = xyz[(height >= low) & (height <= high), :2]
     if len(xy) < config.min_trunk_points:
         return []
     blob = euclidean_clusters(np.column_stack([xy, np.zeros(len(xy))]), 0.25)
@@ -437,10 +429,10 @@ def _band_blobs(xy: np.ndarray, config: ClusterConfig) -> list[tuple[int, np.nda
     return found
 
 
-def _trunks(xy: np.ndarray, config: ClusterConfig) -> np.ndarray:
-    """Trunk centres among the trunk band's returns (x-y): its blobs (`_band_blobs`), each
-    at least `min_tree_spacing_m` from one with more returns."""
-    found = _band_blobs(xy, config)
+def _trunks(xyz: np.ndarray, height: np.ndarray, config: ClusterConfig) -> np.ndarray:
+    """Trunk centres (x-y) among the trunk band's returns of `xyz`: its blobs
+    (`_band_blobs`), each at least `min_tree_spacing_m` from one with more returns."""
+    found = _band_blobs(xyz, height, config)
     # The best seen first: a blob of a few returns within a tree spacing of it gives way.
     found.sort(key=lambda item: -item[0])
     kept: list[np.ndarray] = []

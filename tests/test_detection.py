@@ -12,13 +12,12 @@ import pytest
 from tests.conftest import first_complete_scan
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.drivers.records import POINT_DTYPE
+from treetraits.pipeline.clustering import attach, euclidean_clusters
 from treetraits.pipeline.config import ClusterConfig, CropConfig, DetectionConfig, GroundConfig
 from treetraits.pipeline.detection import (
     FLAT,
-    attach,
     crop_mask,
     detect,
-    euclidean_clusters,
     fit_ground,
     hull_area_volume,
     split_ground,
@@ -262,7 +261,15 @@ def test_a_near_and_a_far_tree_are_one_cluster_each(tree_scene):
 def test_stage_times_are_reported_when_asked(tree_scan):
     stage_ms: dict[str, float] = {}
     detect(tree_scan.points, None, DEFAULT_T_BASE_LIDAR, DetectionConfig(), stage_ms)
-    assert set(stage_ms) == {"crop", "ground", "ndvi_check", "voxel", "stems", "cluster", "features"}
+    assert set(stage_ms) == {
+        "crop",
+        "ground",
+        "ndvi_check",
+        "voxel",
+        "stems",
+        "cluster",
+        "features",
+    }
     assert all(v >= 0 for v in stage_ms.values())
 
 
