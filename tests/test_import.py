@@ -30,6 +30,7 @@ from treetraits.drivers.gnss.summary import summarise
 from treetraits.drivers.gnss.times import sentence_time
 from treetraits.drivers.records import Fix, WheelSample
 from treetraits.drivers.rosbag_import import ImportOptions, import_bags
+from treetraits.drivers.rosbag_topics import CITRUSFARM_T_BASE_IMU
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
 from treetraits.firmware_bridge.jackal.records import JackalImu
@@ -447,10 +448,13 @@ def test_unknown_and_missing_topics_are_listed_not_fatal(tmp_path):
     assert text.returncode == 0, text.stderr
     assert "/piksi/navsatfix_best_fix" in text.stdout and "missing" in text.stdout
     assert "nothing" in text.stdout  # no CitrusFarm topic in this bag: an empty recording
-    # The preset's calibration is the recording's.
-    assert rec.read_recording(tmp_path / "b.mcap").metadata.calibration == json.loads(
-        (FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json").read_text()
-    )
+    # The preset's calibration is the recording's, with the MicroStrain's mounting.
+    assert rec.read_recording(tmp_path / "b.mcap").metadata.calibration == {
+        **json.loads(
+            (FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json").read_text()
+        ),
+        "T_base_imu": list(CITRUSFARM_T_BASE_IMU),
+    }
 
 
 def test_a_damaged_bag_is_one_line_and_exit_2(tmp_path):
@@ -634,7 +638,14 @@ def test_help_explains_every_option_and_bad_options_are_one_line(tmp_path):
     ):  # fmt: skip
         assert option in result.stdout
     text = " ".join(result.stdout.split())  # argparse wraps lines
-    for kind in ("lidar:", "gnss:", "camera:", "odom:", "imu:", "not imported yet: points"):
+    for kind in (
+        "lidar:",
+        "points: sensor_msgs/msg/PointCloud2",
+        "gnss:",
+        "camera:",
+        "odom:",
+        "imu:",
+    ):
         assert kind in text
     bad = cli("import", str(NEBULA_BAG), "--out", str(tmp_path / "o.mcap"), "--topics", "sonar=/x")
     assert bad.returncode == 2 and "unknown kind 'sonar'" in bad.stderr
