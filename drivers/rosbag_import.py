@@ -29,6 +29,7 @@ import heapq
 import math
 import os
 import struct
+from collections import defaultdict, deque
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,6 +59,11 @@ RTK_FIXED_MAX_SIGMA_M = 0.05
 _STATUS_QUALITY = {0: 1, 1: 2}
 _GBAS_FIX = 2
 _COVARIANCE_UNKNOWN = 0
+
+# NavSatFix course made good (`CourseMadeGood`): over about this long, from this far.
+COURSE_WINDOW_NS = 1_000_000_000
+COURSE_MIN_BASELINE_M = 0.2
+EARTH_RADIUS_M = 6_371_000.0
 
 # The recording is written in log_time order: a message is held until the bag's clock is
 # this far past it. A VelodyneScan holds 0.1 s of packets stamped before its receive time.
@@ -214,21 +220,58 @@ def _horizontal_sigma(msg: Any) -> float | None:
     return None if sigmas is None else max(sigmas[0], sigmas[1])
 
 
-def navsatfix(msg: Any, log_time: int, forced_quality: int | None) -> list[_Out]:
+class CourseMadeGood:
+    """Course and speed over ground from a NavSatFix stream's own positions (NavSatFix has
+    no velocity, and the localiser learns its UTM heading from RMC's course): the
+    displacement from the fix about COURSE_WINDOW_S before, as a receiver's course made
+    good. Speed once the window spans half of it; course also needs COURSE_MIN_BASELINE_M
+    of travel (RTK noise of 1-2 cm over 0.5 m is about 2 deg)."""
+
+    def __init__(self) -> None:
+        self._history: deque[tuple[int, float, float]] = deque()  # (utc ns, lat, lon)
+
+    def push(self, utc: int, lat: float, lon: float) -> tuple[float | None, float | None]:
+        if not (math.isfinite(lat) and math.isfinite(lon)):
+            return None, None
+        history = self._history
+        while history and (history[0][0] >= utc or utc - history[0][0] > COURSE_WINDOW_NS):
+            history.popleft()  # too old, or time went back (a new bag, a clock jump)
+        history.append((utc, lat, lon))
+        t0, lat0, lon0 = history[0]
+        dt = (utc - t0) / 1e9
+        if dt < COURSE_WINDOW_NS / 2e9:
+            return None, None
+        north = math.radians(lat - lat0) * EARTH_RADIUS_M
+        east = math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat))
+        distance = math.hypot(east, north)
+        course = math.degrees(math.atan2(east, north)) % 360.0
+        return (course if distance >= COURSE_MIN_BASELINE_M else None), distance / dt
+
+
+def navsatfix(
+    msg: Any, log_time: int, forced_quality: int | None, course: CourseMadeGood
+) -> list[_Out]:
     """A NavSatFix as the sentences of one epoch at its header stamp (as UTC). NavSatFix
     altitude is above the ellipsoid: GGA gets it with a geoid separation of 0, so that
-    altitude + separation is the same ellipsoidal height."""
+    altitude + separation is the same ellipsoidal height. RMC carries the course and speed
+    made good over the last second (`CourseMadeGood`)."""
     utc = _stamp_ns(msg.header.stamp)
+    quality = navsatfix_quality(msg, forced_quality)
+    course_deg, speed = (
+        course.push(utc, float(msg.latitude), float(msg.longitude)) if quality else (None, None)
+    )
     sigmas = _sigmas(msg) or (None, None, None)
     sentences = fix_sentences(
         utc,
         float(msg.latitude),
         float(msg.longitude),
         float(msg.altitude),
-        navsatfix_quality(msg, forced_quality),
+        quality,
         std_east_m=sigmas[0],
         std_north_m=sigmas[1],
         std_up_m=sigmas[2],
+        course_deg=course_deg,
+        speed_mps=speed,
     )
     # publish_time: the epoch's UTC, as the sentences carry it (rounded to the ms).
     utc = round(utc / 1e6) * 1_000_000
@@ -523,6 +566,7 @@ def _convert(
         if chosen:
             streams.append(_bag_messages(reader, chosen, index))
     clock = NmeaClock()
+    courses: dict[str, CourseMadeGood] = defaultdict(CourseMadeGood)  # per NavSatFix topic
     held: list[tuple[int, int, _Out]] = []  # (log_time, order, message): the reorder heap
     order = 0
     last_written = -1
@@ -554,7 +598,8 @@ def _convert(
             for done, (timestamp, index, connection, raw) in enumerate(merged, 1):
                 topic = reports[connection.topic]
                 message = readers[index].deserialize(raw, connection.msgtype)
-                for out in _messages(topic, message, timestamp, clock, options, mounting):
+                outs = _messages(topic, message, timestamp, clock, options, mounting, courses)
+                for out in outs:
                     heapq.heappush(held, (out.log_time, order, out))
                     order += 1
                     topic.written += 1
@@ -576,6 +621,7 @@ def _messages(
     clock: NmeaClock,
     options: ImportOptions,
     mounting: ImuMounting,
+    courses: dict[str, CourseMadeGood],
 ) -> list[_Out]:
     msgtype = topic.msgtype
     if msgtype == "velodyne_msgs/msg/VelodyneScan":
@@ -585,7 +631,7 @@ def _messages(
     if msgtype == "nmea_msgs/msg/Sentence":
         return nmea_sentence(message, log_time, clock, topic)
     if msgtype == "sensor_msgs/msg/NavSatFix":
-        return navsatfix(message, log_time, options.gnss_quality)
+        return navsatfix(message, log_time, options.gnss_quality, courses[topic.topic])
     if msgtype == "sensor_msgs/msg/Image":
         return image(message, log_time, options.jpeg_quality, topic)
     if msgtype == "sensor_msgs/msg/CompressedImage":

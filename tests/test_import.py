@@ -654,3 +654,26 @@ def test_help_explains_every_option_and_bad_options_are_one_line(tmp_path):
     out.write_bytes(b"")
     exists = cli("import", str(NEBULA_BAG), "--out", str(out))
     assert exists.returncode == 2 and "--overwrite" in exists.stderr
+
+
+def test_navsatfix_gets_a_course_made_good_once_the_receiver_moves(tmp_path):
+    # NavSatFix has no velocity; the import derives RMC's course and speed from the
+    # positions of the last second (tests/test_import_citrusfarm.py checks them against
+    # the twin's receiver). A real log driven at up to 1.7 m/s: every moving fix gets a
+    # speed (but the first after a gap in the log), and a course once 0.2 m were travelled
+    # within the second.
+    store = typestore(ros1=True)
+    gnss, source = navsatfix_rows(store, True, "nmea-rtk.nmea", 1_700_000_000 * 10**9)
+    bag = write_ros1(tmp_path / "rtk.bag", store, gnss)
+    import_bags([bag], tmp_path / "rtk.mcap")
+    ours = recording_fixes(tmp_path / "rtk.mcap")
+    assert len(ours) == len(source) == 122
+    moving = [a for a, b in zip(ours, source, strict=True) if (b.speed_mps or 0) > 0.5]
+    assert len(moving) == 44
+    assert sum(a.speed_mps is not None for a in moving) >= len(moving) - 3  # gaps reset it
+    assert sum(a.course_deg is not None for a in moving) >= len(moving) - 3
+    # The first fixes (less than half a second of history): neither.
+    assert ours[0].course_deg is None and ours[0].speed_mps is None
+    # This log's moving fixes are DGPS (quality 2, decimetres of noise): the course made
+    # good from them is off the receiver's Doppler course by 26 deg (median), which is why
+    # the localiser's course sigma grows as the speed falls; RTK gives about 2 deg.

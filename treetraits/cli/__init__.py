@@ -27,6 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
         config,
         doctor,
         eval,
+        export,
         fuse,
         imports,
         lidar,
@@ -55,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.register(commands)
     replay.register(commands)
     imports.register(commands)
+    export.register(commands)
     run.register(commands)
     record.register(commands)
     config.register(commands)
