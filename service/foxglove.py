@@ -44,6 +44,7 @@ METADATA_NAME = "treetraits-export"
 # Channel topics of the view.
 POINTS = "/lidar/points"
 POSE = "/pose"
+PATH = "/path"
 TF = "/tf"
 FIX = "/gnss/fix"
 IMAGE = "/camera/image"
@@ -198,6 +199,20 @@ def pose_in_map(pose: Pose, origin: tuple[float, float]) -> Any:
     p.position.x, p.position.y, p.position.z = pose.x - origin[0], pose.y - origin[1], pose.z
     q = quaternion_zyx(pose.yaw, pose.pitch, pose.roll)
     p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
+    return message
+
+
+def path_in_map(poses: list[Pose], origin: tuple[float, float], t: int) -> Any:
+    """Every pose of the run as one path in `map`."""
+    from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+
+    message = PosesInFrame(frame_id=MAP_FRAME)
+    ns_timestamp(message.timestamp, t)
+    for pose in poses:
+        p = message.poses.add()
+        p.position.x, p.position.y, p.position.z = pose.x - origin[0], pose.y - origin[1], pose.z
+        q = quaternion_zyx(pose.yaw, pose.pitch, pose.roll)
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
     return message
 
 
@@ -402,6 +417,7 @@ def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progre
     processor = make_processor(config, calibration)
     splitter, epochs = SentenceSplitter(), EpochAssembler()
     origin: tuple[float, float] | None = None
+    poses: list[Pose] = []
     first_time: int | None = None
     last_time = 0
 
@@ -419,6 +435,7 @@ def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progre
                 report.world_frame = o.pose.frame
                 _static_frames(writer, calibration, t)
             writer.write(POSE, pose_in_map(o.pose, origin), t, t)
+            poses.append(o.pose)
             p = o.pose
             q = quaternion_zyx(p.yaw, p.pitch, p.roll)
             translation = (p.x - origin[0], p.y - origin[1], p.z)
@@ -450,10 +467,12 @@ def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progre
     ]
     report.trees = len(trees)
     report.origin = origin
+    # The final map and the whole path, shown from the first scan on (Foxglove keeps a
+    # scene entity until it is replaced, and shows a topic's latest message).
+    t0 = first_time if first_time is not None else last_time
+    if poses:
+        writer.write(PATH, path_in_map(poses, origin or (0.0, 0.0), t0), t0, t0)
     if trees:
-        # The final map, shown from the first scan on (Foxglove keeps a scene entity
-        # until it is replaced or deleted).
-        t0 = first_time if first_time is not None else last_time
         writer.write(TREES, scene_update(trees, origin or (0.0, 0.0), t0), t0, t0)
 
 

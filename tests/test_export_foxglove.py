@@ -29,6 +29,7 @@ CLI = [sys.executable, "-m", "treetraits"]
 EXPECTED_SCHEMAS = {
     "/lidar/points": "foxglove.PointCloud",
     "/pose": "foxglove.PoseInFrame",
+    "/path": "foxglove.PosesInFrame",
     "/tf": "foxglove.FrameTransform",
     "/gnss/fix": "foxglove.LocationFix",
     "/camera/image": "foxglove.CompressedImage",
@@ -176,6 +177,10 @@ def test_camera_fixes_and_frames_follow_the_recording(survey):
     assert translation == pytest.approx(calibration.T_base_lidar[:3, 3].tolist())
     poses = [m for _, m in messages["/pose"]]
     assert len(poses) == sum(t.child_frame_id == "base_link" for t in tf)
+    ((_, path),) = messages["/path"]
+    assert [p.SerializeToString() for p in path.poses] == [
+        p.pose.SerializeToString() for p in poses
+    ]
     q = poses[-1].pose.orientation
     assert math.isclose(q.x**2 + q.y**2 + q.z**2 + q.w**2, 1.0, rel_tol=1e-9)
     # The origin of map is in the metadata: the first pose sits on it.
