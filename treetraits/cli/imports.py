@@ -168,6 +168,8 @@ def format_report(report: ImportReport) -> str:
     if report.first_log_time is not None and report.last_log_time is not None:
         span = (report.last_log_time - report.first_log_time) / 1e9
         lines.append(f"  span: {span:.3f} s of log_time")
+    for frame, source in report.imu_frames.items():
+        lines.append(f"  IMU {frame} to base_link: {source}")
     if report.out_of_order:
         lines.append(f"  warning: {report.out_of_order} messages written out of log_time order")
     if not report.channels:
