@@ -134,6 +134,9 @@ class Calibration:
     T_base_gnss: np.ndarray = field(default_factory=lambda: np.eye(4))
     wheels: WheelGeometry = field(default_factory=WheelGeometry)
     source: str = "defaults"
+    # The IMU whose sensor_msgs/Imu a bag carries, in base_link (`treetraits import` turns
+    # its axes into base_link's); None: not given (the import then asks the bag's frames).
+    T_base_imu: np.ndarray | None = None
     # The parts the source did not give, which took their documented default ("camera":
     # no NDVI; "reflectance.nir": 1/255...): said aloud by the commands. A bare
     # `Calibration()` (no calibration anywhere) is all defaults.
@@ -168,6 +171,8 @@ class Calibration:
             out["T_camera_lidar"] = self.T_camera_lidar.ravel().tolist()
         out["T_base_lidar"] = self.T_base_lidar.ravel().tolist()
         out["T_base_gnss"] = self.T_base_gnss.ravel().tolist()
+        if self.T_base_imu is not None:
+            out["T_base_imu"] = self.T_base_imu.ravel().tolist()
         wheels: dict[str, float] = {"radius": self.wheels.radius, "track": self.wheels.track}
         if self.wheels.ticks_per_rev:
             wheels["ticks_per_rev"] = self.wheels.ticks_per_rev
@@ -198,7 +203,10 @@ def load_calibration(source: str | os.PathLike | Mapping[str, Any]) -> Calibrati
             ) from None
     if not isinstance(data, Mapping):
         raise CalibrationError(f"{name}: expected a JSON object at the top level")
-    known = {"camera", "reflectance", "T_camera_lidar", "T_base_lidar", "T_base_gnss", "wheels"}
+    known = {
+        "camera", "reflectance", "T_camera_lidar", "T_base_lidar", "T_base_gnss", "T_base_imu",
+        "wheels",
+    }  # fmt: skip
     unknown = sorted(set(data) - known)
     if unknown:
         raise CalibrationError(f"{name}: unknown field(s) {unknown}; known: {sorted(known)}")
@@ -229,6 +237,7 @@ def load_calibration(source: str | os.PathLike | Mapping[str, Any]) -> Calibrati
         T_base_lidar=_transform(name, data, "T_base_lidar", DEFAULT_T_BASE_LIDAR),
         T_base_gnss=_transform(name, data, "T_base_gnss", np.eye(4)),
         wheels=wheels,
+        T_base_imu=_transform(name, data, "T_base_imu", None),
         source=name,
         defaults=tuple(defaults),
     )

@@ -9,7 +9,7 @@ be replayed through the same drivers later. The format (frozen, see docs/archite
 - `log_time` = host receive time, `publish_time` = the sensor's own UTC time where it has
   one, else the host time; both in ns since the Unix epoch;
 - a metadata record named `treetraits` holding `format_version` ("1"; "1.1" for a
-  recording that carries the motion channels of `V11_TOPICS`), `software` and
+  recording that carries the motion and points channels of `V11_TOPICS`), `software` and
   `calibration` (a JSON object as a string);
 - attachments may hold the field map (`field_map.geojson`).
 
@@ -57,7 +57,7 @@ from treetraits.drivers.jsontext import loads_limited
 from treetraits.errors import SourceError
 
 FORMAT_VERSION = "1"
-# Format 1.1 adds the motion channels (`V11_TOPICS`); a writer marks a recording 1.1 only
+# Format 1.1 adds the motion and points channels (`V11_TOPICS`); a writer marks a recording 1.1 only
 # when asked to, so a recording without them stays readable by format-1 readers.
 FORMAT_VERSION_MOTION = "1.1"
 READ_VERSIONS = (FORMAT_VERSION, FORMAT_VERSION_MOTION)
@@ -72,6 +72,7 @@ WHEELS_JACKAL = "/wheels/jackal"
 WHEELS_BRIDGE = "/wheels/bridge"
 WHEELS_ODOMETRY = "/wheels/odometry"
 IMU_DATA = "/imu/data"
+LIDAR_POINTS = "/lidar/points"
 
 # Topic -> message_encoding, the only channels a v1 recording is written with.
 TOPIC_ENCODINGS: Mapping[str, str] = {
@@ -84,8 +85,10 @@ TOPIC_ENCODINGS: Mapping[str, str] = {
     # Format 1.1 (drivers/motion.py): a robot's odometry and an IMU given as numbers.
     WHEELS_ODOMETRY: "treetraits-odometry",
     IMU_DATA: "treetraits-imu",
+    # Format 1.1 (drivers/points.py): a decoded point cloud, one message per scan.
+    LIDAR_POINTS: "treetraits-points",
 }
-V11_TOPICS = frozenset({WHEELS_ODOMETRY, IMU_DATA})
+V11_TOPICS = frozenset({WHEELS_ODOMETRY, IMU_DATA, LIDAR_POINTS})
 
 FIELD_MAP_NAME = "field_map.geojson"
 FIELD_MAP_MEDIA_TYPE = "application/geo+json"

@@ -10,6 +10,8 @@ the recording's channels (docs/import.md):
   (`drivers/gnss/compose.py`), at the header stamp as UTC;
 - `sensor_msgs/Image` (rgb8, bgr8, mono8) JPEG-encoded, `sensor_msgs/CompressedImage`
   (JPEG as is, others re-encoded) on `/camera/jpeg`;
+- `sensor_msgs/PointCloud2`: the scan's points on `/lidar/points` (format 1.1,
+  `drivers/points.py`, `drivers/pointcloud2.py`);
 - `nav_msgs/Odometry` (its twist) on `/wheels/odometry` and `sensor_msgs/Imu` (rates and
   accelerations) on `/imu/data`: format 1.1 (`drivers/motion.py`), so a recording holding
   them is marked 1.1.
@@ -27,6 +29,7 @@ import heapq
 import math
 import os
 import struct
+from collections import defaultdict, deque
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,10 +41,12 @@ from treetraits.drivers import recording as rec
 from treetraits.drivers.gnss.compose import fix_sentences
 from treetraits.drivers.gnss.times import NmeaClock
 from treetraits.drivers.motion import encode_imu, encode_odometry
+from treetraits.drivers.points import encode_points
+from treetraits.drivers.rosbag_frames import BASE_FRAME, StaticFrames, quaternion_matrix, rotate
 from treetraits.drivers.rosbag_topics import (
     KIND_TYPES,
-    MOTION_KINDS,
     NOT_IMPORTED_YET,
+    V11_KINDS,
 )
 from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE
 from treetraits.drivers.velodyne.packet import resolve_hour
@@ -55,10 +60,16 @@ _STATUS_QUALITY = {0: 1, 1: 2}
 _GBAS_FIX = 2
 _COVARIANCE_UNKNOWN = 0
 
+# NavSatFix course made good (`CourseMadeGood`): over about this long, from this far.
+COURSE_WINDOW_NS = 1_000_000_000
+COURSE_MIN_BASELINE_M = 0.2
+EARTH_RADIUS_M = 6_371_000.0
+
 # The recording is written in log_time order: a message is held until the bag's clock is
 # this far past it. A VelodyneScan holds 0.1 s of packets stamped before its receive time.
 REORDER_WINDOW_NS = 2_000_000_000
 JPEG_QUALITY = 90
+TF_STATIC = "/tf_static"
 
 # Message definitions that the default type stores lack (ROS 2 bags before rosbag2 v8
 # carry none). From ros-drivers/velodyne and ros-drivers/nmea_msgs (BSD).
@@ -100,7 +111,8 @@ class ImportReport:
     first_log_time: int | None = None
     last_log_time: int | None = None
     out_of_order: int = 0  # written after a later log_time (beyond REORDER_WINDOW_NS)
-    format_version: str = rec.FORMAT_VERSION  # 1.1 when odometry or IMU was imported
+    format_version: str = rec.FORMAT_VERSION  # 1.1 with points, odometry or IMU imported
+    imu_frames: dict[str, str] = field(default_factory=dict)  # IMU frame -> its rotation's source
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -111,6 +123,7 @@ class ImportReport:
             "last_log_time": self.last_log_time,
             "out_of_order": self.out_of_order,
             "format_version": self.format_version,
+            "imu_frames": self.imu_frames,
             "topics": [vars(t) for t in self.topics],
             "imported": [t.topic for t in self.topics if t.status == "imported"],
             "not_imported_yet": [t.topic for t in self.topics if t.status == "not imported yet"],
@@ -207,21 +220,58 @@ def _horizontal_sigma(msg: Any) -> float | None:
     return None if sigmas is None else max(sigmas[0], sigmas[1])
 
 
-def navsatfix(msg: Any, log_time: int, forced_quality: int | None) -> list[_Out]:
+class CourseMadeGood:
+    """Course and speed over ground from a NavSatFix stream's own positions (NavSatFix has
+    no velocity, and the localiser learns its UTM heading from RMC's course): the
+    displacement from the fix about COURSE_WINDOW_S before, as a receiver's course made
+    good. Speed once the window spans half of it; course also needs COURSE_MIN_BASELINE_M
+    of travel (RTK noise of 1-2 cm over 0.5 m is about 2 deg)."""
+
+    def __init__(self) -> None:
+        self._history: deque[tuple[int, float, float]] = deque()  # (utc ns, lat, lon)
+
+    def push(self, utc: int, lat: float, lon: float) -> tuple[float | None, float | None]:
+        if not (math.isfinite(lat) and math.isfinite(lon)):
+            return None, None
+        history = self._history
+        while history and (history[0][0] >= utc or utc - history[0][0] > COURSE_WINDOW_NS):
+            history.popleft()  # too old, or time went back (a new bag, a clock jump)
+        history.append((utc, lat, lon))
+        t0, lat0, lon0 = history[0]
+        dt = (utc - t0) / 1e9
+        if dt < COURSE_WINDOW_NS / 2e9:
+            return None, None
+        north = math.radians(lat - lat0) * EARTH_RADIUS_M
+        east = math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat))
+        distance = math.hypot(east, north)
+        course = math.degrees(math.atan2(east, north)) % 360.0
+        return (course if distance >= COURSE_MIN_BASELINE_M else None), distance / dt
+
+
+def navsatfix(
+    msg: Any, log_time: int, forced_quality: int | None, course: CourseMadeGood
+) -> list[_Out]:
     """A NavSatFix as the sentences of one epoch at its header stamp (as UTC). NavSatFix
     altitude is above the ellipsoid: GGA gets it with a geoid separation of 0, so that
-    altitude + separation is the same ellipsoidal height."""
+    altitude + separation is the same ellipsoidal height. RMC carries the course and speed
+    made good over the last second (`CourseMadeGood`)."""
     utc = _stamp_ns(msg.header.stamp)
+    quality = navsatfix_quality(msg, forced_quality)
+    course_deg, speed = (
+        course.push(utc, float(msg.latitude), float(msg.longitude)) if quality else (None, None)
+    )
     sigmas = _sigmas(msg) or (None, None, None)
     sentences = fix_sentences(
         utc,
         float(msg.latitude),
         float(msg.longitude),
         float(msg.altitude),
-        navsatfix_quality(msg, forced_quality),
+        quality,
         std_east_m=sigmas[0],
         std_north_m=sigmas[1],
         std_up_m=sigmas[2],
+        course_deg=course_deg,
+        speed_mps=speed,
     )
     # publish_time: the epoch's UTC, as the sentences carry it (rounded to the ms).
     utc = round(utc / 1e6) * 1_000_000
@@ -271,6 +321,24 @@ def compressed_image(msg: Any, log_time: int, jpeg_quality: int, report: TopicRe
     return [_Out(rec.CAMERA_JPEG, data, log_time, _stamp_ns(msg.header.stamp))]
 
 
+def point_cloud(msg: Any, log_time: int, report: TopicReport) -> list[_Out]:
+    """A PointCloud2 as one `/lidar/points` message (`drivers/points.py`); publish_time =
+    header stamp. Points without finite x, y, z are dropped and counted."""
+    from treetraits.drivers.pointcloud2 import CloudError, cloud_points
+
+    stamp = _stamp_ns(msg.header.stamp)
+    try:
+        cloud = cloud_points(msg, stamp)
+    except CloudError as error:
+        report.skip(str(error))
+        return []
+    if cloud.dropped:
+        reason = "points without finite x, y, z (dropped)"
+        report.skip_reasons[reason] = report.skip_reasons.get(reason, 0) + cloud.dropped
+    data = encode_points(cloud.header, cloud.points)
+    return [_Out(rec.LIDAR_POINTS, data, log_time, stamp)]
+
+
 def odometry(msg: Any, log_time: int) -> list[_Out]:
     """A nav_msgs/Odometry's twist (in its child frame, base_link): forward speed and yaw
     rate; publish_time = header stamp."""
@@ -279,12 +347,62 @@ def odometry(msg: Any, log_time: int) -> list[_Out]:
     return [_Out(rec.WHEELS_ODOMETRY, data, log_time, _stamp_ns(msg.header.stamp))]
 
 
-def imu(msg: Any, log_time: int) -> list[_Out]:
-    """A sensor_msgs/Imu's angular velocity and linear acceleration (its orientation is not
-    kept: the attitude filter makes its own); publish_time = header stamp."""
+def imu(msg: Any, log_time: int, mounting: ImuMounting) -> list[_Out]:
+    """A sensor_msgs/Imu's angular velocity and linear acceleration turned into base_link
+    (`ImuMounting`; its orientation is not kept: the attitude filter makes its own);
+    publish_time = header stamp."""
     w, a = msg.angular_velocity, msg.linear_acceleration
-    data = encode_imu((w.x, w.y, w.z), (a.x, a.y, a.z))
+    R = mounting.rotation(str(msg.header.frame_id))
+    data = encode_imu(rotate(R, (w.x, w.y, w.z)), rotate(R, (a.x, a.y, a.z)))
     return [_Out(rec.IMU_DATA, data, log_time, _stamp_ns(msg.header.stamp))]
+
+
+class ImuMounting:
+    """R_base_imu per IMU frame: the calibration's `T_base_imu`, else the bag's static
+    transforms, else identity (`drivers/rosbag_frames.py`). `sources` says, per frame,
+    where its rotation came from (the import summary shows it)."""
+
+    def __init__(self, calibration: Mapping[str, Any] | None, frames: StaticFrames):
+        self._given = None
+        if calibration and "T_base_imu" in calibration:
+            self._given = np.asarray(calibration["T_base_imu"], dtype=float).reshape(4, 4)[:3, :3]
+        self._frames = frames
+        self._cache: dict[str, np.ndarray] = {}
+        self.sources: dict[str, str] = {}
+
+    def rotation(self, frame: str) -> np.ndarray:
+        if (R := self._cache.get(frame)) is not None:
+            return R
+        if self._given is not None:
+            R, source = self._given, "calibration T_base_imu"
+        elif (found := self._frames.rotation(BASE_FRAME, frame)) is not None:
+            R, path = found
+            source = "same frame" if len(path) == 1 else "/tf_static " + " -> ".join(path)
+        else:
+            R, source = np.eye(3), f"none: no transform to {BASE_FRAME}, taken as {BASE_FRAME}"
+        self._cache[frame] = R
+        self.sources[frame or "(empty frame_id)"] = source
+        return R
+
+
+def static_frames(readers: list[Any], reports: Mapping[str, TopicReport]) -> StaticFrames:
+    """Every transform of the bags' `/tf_static` topics (marked as read in the summary)."""
+    frames = StaticFrames()
+    for reader in readers:
+        chosen = [
+            c
+            for c in reader.connections
+            if c.topic == TF_STATIC and c.msgtype == "tf2_msgs/msg/TFMessage"
+        ]
+        if not chosen:
+            continue
+        reports[TF_STATIC].status = "read: static transforms (IMU mounting)"
+        for connection, _, raw in reader.messages(connections=chosen):
+            for t in reader.deserialize(raw, connection.msgtype).transforms:
+                q = t.transform.rotation
+                R = quaternion_matrix(q.x, q.y, q.z, q.w)
+                frames.add(str(t.header.frame_id), str(t.child_frame_id), R)
+    return frames
 
 
 def default_typestore() -> Any:
@@ -411,10 +529,18 @@ def import_bags(
             stack.callback(reader.close)
             readers.append(reader)
         reports = _select(readers, options.topics)
+        frames = StaticFrames()
+        if any(r.kind == "imu" and r.status == "imported" for r in reports.values()):
+            try:
+                frames = static_frames(readers, reports)
+            except errors as error:
+                raise SourceError(f"{TF_STATIC}: damaged ROS bag ({_reason(error)})") from None
+        mounting = ImuMounting(options.calibration, frames)
         report = ImportReport([os.fspath(b) for b in bags], os.fspath(output), [])
         report.topics = sorted(reports.values(), key=lambda r: (r.status != "imported", r.topic))
+        report.imu_frames = mounting.sources
         try:
-            _convert(readers, bags, reports, output, options, report, errors, progress)
+            _convert(readers, bags, reports, output, options, mounting, report, errors, progress)
         except BaseException:
             with contextlib.suppress(OSError):
                 output.unlink()
@@ -428,6 +554,7 @@ def _convert(
     reports: Mapping[str, TopicReport],
     output: Path,
     options: ImportOptions,
+    mounting: ImuMounting,
     report: ImportReport,
     errors: tuple,
     progress: Callable[[int, int], None] | None,
@@ -439,6 +566,7 @@ def _convert(
         if chosen:
             streams.append(_bag_messages(reader, chosen, index))
     clock = NmeaClock()
+    courses: dict[str, CourseMadeGood] = defaultdict(CourseMadeGood)  # per NavSatFix topic
     held: list[tuple[int, int, _Out]] = []  # (log_time, order, message): the reorder heap
     order = 0
     last_written = -1
@@ -457,7 +585,7 @@ def _convert(
             report.last_log_time = max(report.last_log_time or 0, log_time)
 
     merged = heapq.merge(*streams, key=lambda item: (item[0], item[1]))
-    motion = any(r.kind in MOTION_KINDS and r.status == "imported" for r in reports.values())
+    motion = any(r.kind in V11_KINDS and r.status == "imported" for r in reports.values())
     with rec.RecordingWriter(
         output,
         calibration=options.calibration,
@@ -470,7 +598,8 @@ def _convert(
             for done, (timestamp, index, connection, raw) in enumerate(merged, 1):
                 topic = reports[connection.topic]
                 message = readers[index].deserialize(raw, connection.msgtype)
-                for out in _messages(topic, message, timestamp, clock, options):
+                outs = _messages(topic, message, timestamp, clock, options, mounting, courses)
+                for out in outs:
                     heapq.heappush(held, (out.log_time, order, out))
                     order += 1
                     topic.written += 1
@@ -486,15 +615,23 @@ def _convert(
 
 
 def _messages(
-    topic: TopicReport, message: Any, log_time: int, clock: NmeaClock, options: ImportOptions
+    topic: TopicReport,
+    message: Any,
+    log_time: int,
+    clock: NmeaClock,
+    options: ImportOptions,
+    mounting: ImuMounting,
+    courses: dict[str, CourseMadeGood],
 ) -> list[_Out]:
     msgtype = topic.msgtype
     if msgtype == "velodyne_msgs/msg/VelodyneScan":
         return velodyne_scan(message, topic)
+    if msgtype == "sensor_msgs/msg/PointCloud2":
+        return point_cloud(message, log_time, topic)
     if msgtype == "nmea_msgs/msg/Sentence":
         return nmea_sentence(message, log_time, clock, topic)
     if msgtype == "sensor_msgs/msg/NavSatFix":
-        return navsatfix(message, log_time, options.gnss_quality)
+        return navsatfix(message, log_time, options.gnss_quality, courses[topic.topic])
     if msgtype == "sensor_msgs/msg/Image":
         return image(message, log_time, options.jpeg_quality, topic)
     if msgtype == "sensor_msgs/msg/CompressedImage":
@@ -502,5 +639,5 @@ def _messages(
     if msgtype == "nav_msgs/msg/Odometry":
         return odometry(message, log_time)
     if msgtype == "sensor_msgs/msg/Imu":
-        return imu(message, log_time)
+        return imu(message, log_time, mounting)
     raise AssertionError(f"no conversion for {msgtype}")  # _select imports only the above

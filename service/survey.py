@@ -37,6 +37,7 @@ from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.drivers.motion import OdometryIntegrator, decode_imu
+from treetraits.drivers.points import decode_points
 from treetraits.drivers.records import Fix, Frame, Pose, Scan, WheelSample
 from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.drivers.velodyne.telemetry import decode_telemetry
@@ -88,6 +89,7 @@ class SurveyStats:
     unknown_topics: int = 0
     telemetry_malformed: int = 0
     motion_malformed: int = 0  # format 1.1 odometry or IMU messages of the wrong size
+    points_malformed: int = 0  # format 1.1 points messages that do not decode
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -131,6 +133,11 @@ class SurveyProcessor:
             scan = self._batcher.push(data, log_time)
             if scan is not None:
                 self._add_scan(scan)
+        elif topic == rec.LIDAR_POINTS:  # format 1.1: a decoded cloud, one scan
+            try:
+                self._add_scan(decode_points(data))
+            except ParseError:
+                self.stats.points_malformed += 1
         elif topic == rec.CAMERA_JPEG:
             self._frames.append(Frame(bytes(data), log_time, publish_time, self.stats.frames))
             self._frame_seen = log_time

@@ -30,6 +30,7 @@ from treetraits.drivers.gnss.summary import summarise
 from treetraits.drivers.gnss.times import sentence_time
 from treetraits.drivers.records import Fix, WheelSample
 from treetraits.drivers.rosbag_import import ImportOptions, import_bags
+from treetraits.drivers.rosbag_topics import CITRUSFARM_T_BASE_IMU
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
 from treetraits.firmware_bridge.jackal.records import JackalImu
@@ -447,10 +448,13 @@ def test_unknown_and_missing_topics_are_listed_not_fatal(tmp_path):
     assert text.returncode == 0, text.stderr
     assert "/piksi/navsatfix_best_fix" in text.stdout and "missing" in text.stdout
     assert "nothing" in text.stdout  # no CitrusFarm topic in this bag: an empty recording
-    # The preset's calibration is the recording's.
-    assert rec.read_recording(tmp_path / "b.mcap").metadata.calibration == json.loads(
-        (FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json").read_text()
-    )
+    # The preset's calibration is the recording's, with the MicroStrain's mounting.
+    assert rec.read_recording(tmp_path / "b.mcap").metadata.calibration == {
+        **json.loads(
+            (FIXTURES / "citrusfarm_calib" / "citrusfarm_calibration_v1.json").read_text()
+        ),
+        "T_base_imu": list(CITRUSFARM_T_BASE_IMU),
+    }
 
 
 def test_a_damaged_bag_is_one_line_and_exit_2(tmp_path):
@@ -634,7 +638,14 @@ def test_help_explains_every_option_and_bad_options_are_one_line(tmp_path):
     ):  # fmt: skip
         assert option in result.stdout
     text = " ".join(result.stdout.split())  # argparse wraps lines
-    for kind in ("lidar:", "gnss:", "camera:", "odom:", "imu:", "not imported yet: points"):
+    for kind in (
+        "lidar:",
+        "points: sensor_msgs/msg/PointCloud2",
+        "gnss:",
+        "camera:",
+        "odom:",
+        "imu:",
+    ):
         assert kind in text
     bad = cli("import", str(NEBULA_BAG), "--out", str(tmp_path / "o.mcap"), "--topics", "sonar=/x")
     assert bad.returncode == 2 and "unknown kind 'sonar'" in bad.stderr
@@ -643,3 +654,26 @@ def test_help_explains_every_option_and_bad_options_are_one_line(tmp_path):
     out.write_bytes(b"")
     exists = cli("import", str(NEBULA_BAG), "--out", str(out))
     assert exists.returncode == 2 and "--overwrite" in exists.stderr
+
+
+def test_navsatfix_gets_a_course_made_good_once_the_receiver_moves(tmp_path):
+    # NavSatFix has no velocity; the import derives RMC's course and speed from the
+    # positions of the last second (tests/test_import_citrusfarm.py checks them against
+    # the twin's receiver). A real log driven at up to 1.7 m/s: every moving fix gets a
+    # speed (but the first after a gap in the log), and a course once 0.2 m were travelled
+    # within the second.
+    store = typestore(ros1=True)
+    gnss, source = navsatfix_rows(store, True, "nmea-rtk.nmea", 1_700_000_000 * 10**9)
+    bag = write_ros1(tmp_path / "rtk.bag", store, gnss)
+    import_bags([bag], tmp_path / "rtk.mcap")
+    ours = recording_fixes(tmp_path / "rtk.mcap")
+    assert len(ours) == len(source) == 122
+    moving = [a for a, b in zip(ours, source, strict=True) if (b.speed_mps or 0) > 0.5]
+    assert len(moving) == 44
+    assert sum(a.speed_mps is not None for a in moving) >= len(moving) - 3  # gaps reset it
+    assert sum(a.course_deg is not None for a in moving) >= len(moving) - 3
+    # The first fixes (less than half a second of history): neither.
+    assert ours[0].course_deg is None and ours[0].speed_mps is None
+    # This log's moving fixes are DGPS (quality 2, decimetres of noise): the course made
+    # good from them is off the receiver's Doppler course by 26 deg (median), which is why
+    # the localiser's course sigma grows as the speed falls; RTK gives about 2 deg.

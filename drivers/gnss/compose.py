@@ -32,6 +32,9 @@ def lon_field(lon: float) -> tuple[str, str]:
     return f"{degrees:03d}{(lon - degrees) * 60:011.8f}", hemisphere
 
 
+KNOT_MPS = 1852.0 / 3600.0
+
+
 def _number(value: float | None, digits: int) -> str:
     """A field, empty when the value is unknown (None or not finite)."""
     return "" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
@@ -49,10 +52,13 @@ def fix_sentences(
     std_north_m: float | None = None,
     std_up_m: float | None = None,
     talker: str = "GN",
+    course_deg: float | None = None,
+    speed_mps: float | None = None,
 ) -> list[bytes]:
     """One epoch as GGA, RMC (for the date) and, when a standard deviation is known, GST,
-    at `utc_ns` rounded to the millisecond. Satellites, HDOP, speed and course are left
-    empty (unknown). A non-finite lat/lon leaves the position empty. GST's RMS and error
+    at `utc_ns` rounded to the millisecond. Satellites and HDOP are left empty (unknown),
+    speed and course too unless given (RMC: knots, degrees from true north). A non-finite
+    lat/lon leaves the position empty. GST's RMS and error
     ellipse are left empty: the localiser reads only its per-axis sigmas."""
     utc_ns = round(utc_ns / 1e6) * 1_000_000
     utc = dt.datetime.fromtimestamp(utc_ns // 1_000_000_000, dt.timezone.utc)
@@ -70,7 +76,9 @@ def fix_sentences(
             f"{geoid_separation_m:.3f},M,,"
         ),
         sentence(
-            f"{talker}RMC,{hhmmss},{'A' if quality else 'V'},{position},,,{utc:%d%m%y},,,"
+            f"{talker}RMC,{hhmmss},{'A' if quality else 'V'},{position},"
+            f"{_number(None if speed_mps is None else speed_mps / KNOT_MPS, 3)},"
+            f"{_number(course_deg, 2)},{utc:%d%m%y},,,"
             f"{RMC_MODE.get(quality, 'N')}"
         ),
     ]

@@ -34,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
         config,
         doctor,
         eval,
+        export,
         fuse,
         imports,
         lidar,
@@ -64,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.register(commands)
     replay.register(commands)
     imports.register(commands)
+    export.register(commands)
     run.register(commands)
     record.register(commands)
     config.register(commands)

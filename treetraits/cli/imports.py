@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 from treetraits.drivers.rosbag_topics import (
     CITRUSFARM_GNSS_QUALITY,
+    CITRUSFARM_T_BASE_IMU,
     CITRUSFARM_TOPICS,
     KIND_TYPES,
     KINDS,
@@ -26,7 +27,7 @@ PRESETS = ("citrusfarm",)
 def _kinds_help() -> str:
     known = "; ".join(f"{kind}: {', '.join(types)}" for kind, types in KIND_TYPES.items())
     later = ", ".join(f"{kind} ({t})" for t, kind in NOT_IMPORTED_YET.items())
-    return f"{known}. Accepted but not imported yet: {later}"
+    return f"{known}. Accepted but not imported yet: {later}" if later else known
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -37,11 +38,11 @@ def register(commands: argparse._SubParsersAction) -> None:
             "Read ROS 1 bags (.bag) and ROS 2 bags (a directory with metadata.yaml, sqlite3 "
             "or mcap storage) without ROS, and write the sensors' bytes as a treetraits "
             "recording (format v1): VelodyneScan packets byte for byte, NMEA sentences, "
-            "NavSatFix as GGA/RMC/GST, images as JPEG, and Odometry and Imu (which make it "
-            "format 1.1). Several bags (a data set split by "
-            "sensor) are merged by time. Topics of other types, and asked-for topics the "
-            "bags lack, are listed in the summary; a damaged bag stops the import with an "
-            "error and no recording. docs/import.md gives every rule."
+            "NavSatFix as GGA/RMC/GST, images as JPEG, and PointCloud2, Odometry and Imu "
+            "(which make it format 1.1; the IMU turned into base_link). Several bags (a "
+            "data set split by sensor) are merged by time. Topics of other types, and "
+            "asked-for topics the bags lack, are listed in the summary; a damaged bag "
+            "stops the import with an error and no recording. docs/import.md gives every rule."
         ),
     )
     parser.add_argument(
@@ -69,7 +70,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         choices=PRESETS,
         help="citrusfarm: the CitrusFarm data set's topics ("
         + ", ".join(f"{k}={v}" for k, v in CITRUSFARM_TOPICS.items())
-        + "), its calibration (the one the simulator uses) and GGA quality "
+        + "), its calibration (the one the simulator uses, plus the MicroStrain IMU's "
+        "mounting as T_base_imu when the calibration has none) and GGA quality "
         f"{CITRUSFARM_GNSS_QUALITY} (RTK fixed) for its NavSatFix",
     )
     parser.add_argument(
@@ -114,6 +116,9 @@ def options_from_args(args: argparse.Namespace) -> ImportOptions:
     if calibration_path is not None:
         load_calibration(calibration_path)  # refuse a malformed file before any work
         calibration = json.loads(Path(calibration_path).read_text())
+    if args.preset == "citrusfarm" and "T_base_imu" not in (calibration or {}):
+        # The MicroStrain's mounting, unless the calibration given says otherwise.
+        calibration = {**(calibration or {}), "T_base_imu": list(CITRUSFARM_T_BASE_IMU)}
     return ImportOptions(
         topics=topics,
         gnss_quality=quality,
@@ -150,7 +155,7 @@ def format_report(report: ImportReport) -> str:
     for t in report.topics:
         done = f" -> {t.written} messages" if t.status == "imported" else ""
         skipped = ""
-        if t.skipped:
+        if t.skip_reasons:  # messages skipped, and points dropped from clouds
             reasons = ", ".join(f"{n} {why}" for why, n in t.skip_reasons.items())
             skipped = f" ({t.skipped} skipped: {reasons})"
         kind = f"[{t.kind}] " if t.kind else ""
@@ -163,6 +168,8 @@ def format_report(report: ImportReport) -> str:
     if report.first_log_time is not None and report.last_log_time is not None:
         span = (report.last_log_time - report.first_log_time) / 1e9
         lines.append(f"  span: {span:.3f} s of log_time")
+    for frame, source in report.imu_frames.items():
+        lines.append(f"  IMU {frame} to base_link: {source}")
     if report.out_of_order:
         lines.append(f"  warning: {report.out_of_order} messages written out of log_time order")
     if not report.channels:

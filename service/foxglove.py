@@ -1,0 +1,495 @@
+"""`treetraits export foxglove`: a survey as an MCAP that Foxglove opens as it is.
+
+The recording is run through the same `SurveyProcessor` as `replay` (same config, same
+calibration rules), and what the pipeline saw is written with the published Foxglove
+protobuf schemas (`foxglove_schemas_protobuf`; each channel's schema is its message's
+`FileDescriptorSet`, message encoding `protobuf`). docs/data.md, "Looking at a survey in
+Foxglove", lists the channels. Frames:
+
+- `map`: the run's world frame (`utm` or `odom`) moved to the first posed scan (so that
+  Foxglove's float32 scene keeps centimetres); the origin is in the metadata record
+  `treetraits-export`;
+- `base_link`: the pose at each scan's middle (`/tf`);
+- `lidar` and `camera`: fixed on base_link by the calibration (`/tf`, published with the
+  first pose).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from treetraits.drivers import recording as rec
+from treetraits.drivers.calibration import Calibration
+from treetraits.drivers.gnss.epochs import EpochAssembler
+from treetraits.drivers.gnss.sentences import decode
+from treetraits.drivers.gnss.stream import SentenceSplitter
+from treetraits.drivers.records import Fix, Frame, Pose, Scan
+from treetraits.errors import ConfigError, OutputExistsError, ParseError, SourceError
+from treetraits.pipeline.classify import TREE
+
+MAP_FRAME = "map"
+BASE_FRAME = "base_link"
+LIDAR_FRAME = "lidar"
+CAMERA_FRAME = "camera"
+METADATA_NAME = "treetraits-export"
+
+# Channel topics of the view.
+POINTS = "/lidar/points"
+POSE = "/pose"
+PATH = "/path"
+TF = "/tf"
+FIX = "/gnss/fix"
+IMAGE = "/camera/image"
+NDVI = "/camera/ndvi"
+TREES = "/trees"
+# Trees without NDVI: grey, half transparent.
+NO_NDVI_RGBA = (0.5, 0.5, 0.5, 0.6)
+# A scan's points: x y z float32, intensity and ring uint8 (14 bytes a point).
+_CLOUD_DTYPE = np.dtype(
+    [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("ring", "u1")]
+)
+
+
+@dataclass
+class ExportReport:
+    input: str
+    output: str
+    channels: dict[str, int] = field(default_factory=dict)  # topic -> messages
+    scans: int = 0
+    trees: int = 0
+    world_frame: str | None = None
+    origin: tuple[float, float] | None = None  # map origin in the world frame
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**vars(self), "origin": list(self.origin) if self.origin else None}
+
+
+def ns_timestamp(message_field: Any, t_ns: int) -> None:
+    message_field.FromNanoseconds(int(t_ns))
+
+
+def quaternion_zyx(yaw: float, pitch: float, roll: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of R = Rz(yaw) Ry(pitch) Rx(roll), the `Pose` convention."""
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    return (
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+        cr * cp * cy + sr * sp * sy,
+    )
+
+
+def matrix_quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return float(x), float(y), float(z), float(w)
+
+
+def ndvi_rgba(ndvi: float | None) -> tuple[float, float, float, float]:
+    """A tree's colour: the RdYlGn map over NDVI [-1, 1] of the camera views
+    (`pipeline.fusion.NDVI_LUT`), grey without NDVI."""
+    from treetraits.pipeline.fusion import NDVI_LUT
+
+    if ndvi is None or not math.isfinite(ndvi):
+        return NO_NDVI_RGBA
+    b, g, r = NDVI_LUT[round((min(max(ndvi, -1.0), 1.0) + 1.0) * 127.5)]
+    return r / 255, g / 255, b / 255, 0.8
+
+
+class FoxgloveWriter:
+    """Thin MCAP writer: one protobuf channel per topic, registered on first use."""
+
+    def __init__(self, stream):
+        from mcap.writer import CompressionType, Writer
+
+        self._writer = Writer(stream, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library=f"{rec.SOFTWARE} export foxglove")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.counts: dict[str, int] = {}
+
+    def _schema(self, message: Any) -> int:
+        name = message.DESCRIPTOR.full_name
+        if name not in self._schemas:
+            self._schemas[name] = self._writer.register_schema(
+                name=name, encoding="protobuf", data=file_descriptor_set(message)
+            )
+        return self._schemas[name]
+
+    def write(self, topic: str, message: Any, log_time: int, publish_time: int) -> None:
+        if topic not in self._channels:
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding="protobuf", schema_id=self._schema(message)
+            )
+        self._writer.add_message(
+            channel_id=self._channels[topic],
+            log_time=int(log_time),
+            publish_time=int(publish_time),
+            data=message.SerializeToString(),
+            sequence=self.counts.get(topic, 0),
+        )
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def metadata(self, name: str, data: dict[str, str]) -> None:
+        self._writer.add_metadata(name, data)
+
+    def finish(self) -> None:
+        self._writer.finish()
+
+
+def file_descriptor_set(message: Any) -> bytes:
+    """The schema of a protobuf message: its .proto file and every one it imports."""
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
+
+    files = FileDescriptorSet()
+    seen: set[str] = set()
+    todo = [message.DESCRIPTOR.file]
+    while todo:
+        proto = todo.pop()
+        if proto.name in seen:
+            continue
+        seen.add(proto.name)
+        proto.CopyToProto(files.file.add())
+        todo.extend(proto.dependencies)
+    return files.SerializeToString()
+
+
+def point_cloud(scan: Scan, t: int) -> Any:
+    from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    points = scan.distinct if scan.points["duplicate"].any() else scan.points
+    rows = np.empty(len(points), dtype=_CLOUD_DTYPE)
+    for name in _CLOUD_DTYPE.names:
+        rows[name] = points[name]
+    kinds = {"f": PackedElementField.FLOAT32, "u": PackedElementField.UINT8}
+    message = PointCloud(
+        frame_id=LIDAR_FRAME,
+        point_stride=_CLOUD_DTYPE.itemsize,
+        fields=[
+            PackedElementField(
+                name=name, offset=_CLOUD_DTYPE.fields[name][1], type=kinds[_CLOUD_DTYPE[name].kind]
+            )
+            for name in _CLOUD_DTYPE.names
+        ],
+        data=rows.tobytes(),
+    )
+    message.pose.orientation.w = 1.0
+    ns_timestamp(message.timestamp, t)
+    return message
+
+
+def pose_in_map(pose: Pose, origin: tuple[float, float]) -> Any:
+    from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+
+    message = PoseInFrame(frame_id=MAP_FRAME)
+    ns_timestamp(message.timestamp, pose.t)
+    p = message.pose
+    p.position.x, p.position.y, p.position.z = pose.x - origin[0], pose.y - origin[1], pose.z
+    q = quaternion_zyx(pose.yaw, pose.pitch, pose.roll)
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
+    return message
+
+
+def path_in_map(poses: list[Pose], origin: tuple[float, float], t: int) -> Any:
+    """Every pose of the run as one path in `map`."""
+    from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+
+    message = PosesInFrame(frame_id=MAP_FRAME)
+    ns_timestamp(message.timestamp, t)
+    for pose in poses:
+        p = message.poses.add()
+        p.position.x, p.position.y, p.position.z = pose.x - origin[0], pose.y - origin[1], pose.z
+        q = quaternion_zyx(pose.yaw, pose.pitch, pose.roll)
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
+    return message
+
+
+def frame_transform(
+    t: int, parent: str, child: str, translation, rotation: tuple[float, float, float, float]
+) -> Any:
+    from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+
+    message = FrameTransform(parent_frame_id=parent, child_frame_id=child)
+    ns_timestamp(message.timestamp, t)
+    message.translation.x, message.translation.y, message.translation.z = (
+        float(v) for v in translation
+    )
+    r = message.rotation
+    r.x, r.y, r.z, r.w = rotation
+    return message
+
+
+def location_fix(fix: Fix) -> Any | None:
+    """A GNSS epoch with a position; its GST sigmas as a diagonal ENU covariance."""
+    from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+
+    if fix.lat is None or fix.lon is None or fix.quality == 0:
+        return None
+    message = LocationFix(
+        frame_id="gnss",
+        latitude=fix.lat,
+        longitude=fix.lon,
+        altitude=fix.altitude_ellipsoid_m or 0.0,
+    )
+    ns_timestamp(message.timestamp, fix.t_host)
+    sigmas = (fix.std_lon_m, fix.std_lat_m, fix.std_alt_m)
+    if all(s is not None for s in sigmas):
+        message.position_covariance.extend(
+            [sigmas[0] ** 2, 0, 0, 0, sigmas[1] ** 2, 0, 0, 0, sigmas[2] ** 2]
+        )
+        message.position_covariance_type = LocationFix.DIAGONAL_KNOWN
+    else:
+        message.position_covariance.extend([0.0] * 9)
+        message.position_covariance_type = LocationFix.UNKNOWN
+    return message
+
+
+def compressed_image(jpeg: bytes, t: int) -> Any:
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    message = CompressedImage(frame_id=CAMERA_FRAME, data=jpeg, format="jpeg")
+    ns_timestamp(message.timestamp, t)
+    return message
+
+
+def ndvi_jpeg(frame: Frame, calibration: Calibration, quality: int = 85) -> bytes | None:
+    """The frame's NDVI as the camera views colour it (RdYlGn, NaN grey), or None without a
+    camera calibration or when the JPEG does not decode."""
+    import cv2
+
+    from treetraits.pipeline.fusion import colorize_ndvi
+    from treetraits.pipeline.ndvi import ndvi_image
+
+    camera = calibration.camera
+    if camera is None:
+        return None
+    try:
+        image = frame.decode()
+    except ParseError:
+        return None  # a corrupt JPEG: the image channel still has it, as it is
+    picture = colorize_ndvi(ndvi_image(image, camera.channels, calibration.reflectance))
+    ok, data = cv2.imencode(".jpg", picture, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return data.tobytes() if ok else None
+
+
+def scene_update(trees: list, origin: tuple[float, float], t: int) -> Any:
+    """The trees as upright cylinders in `map`: diameter the width, length the height,
+    standing on z = 0 (base_footprint's ground), coloured by NDVI; id and traits as
+    metadata, the id as a label above."""
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    update = SceneUpdate()
+    for tree in trees:
+        entity = update.entities.add(id=f"tree-{tree.tree_id}", frame_id=MAP_FRAME)
+        ns_timestamp(entity.timestamp, t)
+        for key, value in (
+            ("tree_id", tree.tree_id),
+            ("width_m", f"{tree.width_m:.3f}"),
+            ("height_m", f"{tree.height_m:.3f}"),
+            ("ndvi", "" if tree.ndvi is None else f"{tree.ndvi:.3f}"),
+            ("observations", tree.observations),
+        ):
+            entity.metadata.add(key=key, value=str(value))
+        cylinder = entity.cylinders.add(bottom_scale=1.0, top_scale=1.0)
+        cylinder.pose.position.x = tree.x - origin[0]
+        cylinder.pose.position.y = tree.y - origin[1]
+        cylinder.pose.position.z = tree.height_m / 2
+        cylinder.pose.orientation.w = 1.0
+        cylinder.size.x = cylinder.size.y = tree.width_m
+        cylinder.size.z = tree.height_m
+        c = cylinder.color
+        c.r, c.g, c.b, c.a = ndvi_rgba(tree.ndvi)
+        text = entity.texts.add(
+            billboard=True, font_size=14, scale_invariant=True, text=str(tree.tree_id)
+        )
+        text.pose.position.x = cylinder.pose.position.x
+        text.pose.position.y = cylinder.pose.position.y
+        text.pose.position.z = tree.height_m + 0.3
+        text.pose.orientation.w = 1.0
+        text.color.r = text.color.g = text.color.b = text.color.a = 1.0
+    return update
+
+
+def run_recording(run_dir: Path) -> tuple[Path, dict]:
+    """The recording a replay output directory came from, and its run facts."""
+    import json
+    import sqlite3
+
+    from treetraits.service.outputs import STORE_NAME
+
+    store = run_dir / STORE_NAME
+    if not store.is_file():
+        raise SourceError(f"{run_dir}: no {STORE_NAME} (not a replay's output directory)")
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{store}?mode=ro", uri=True)) as db:
+            rows = list(db.execute("SELECT key, value FROM run"))
+    except sqlite3.Error as error:
+        raise SourceError(f"{store}: run facts unreadable ({error})") from None
+    facts = {}
+    for key, value in rows:  # strings are stored as they are, the rest as JSON
+        try:
+            facts[key] = json.loads(value)
+        except ValueError:
+            facts[key] = value
+    source = facts.get("input")
+    if not source:
+        raise SourceError(f"{store}: the run does not say which recording it came from")
+    path = Path(source)
+    if not path.is_absolute() and not path.exists():
+        path = run_dir / path
+    if not path.is_file():
+        raise SourceError(f"{run_dir}: its recording {source} is not there")
+    return path, facts
+
+
+def export_foxglove(
+    source: Path,
+    output: Path,
+    config,
+    calibration: Path | None = None,
+    force: bool = False,
+    progress: Callable[[int], None] | None = None,
+) -> ExportReport:
+    """Write `output` (a Foxglove MCAP) from a recording, or from a replay's output
+    directory (its recording, with the run's method, traits and calibration)."""
+    from treetraits.service.config import with_method
+    from treetraits.service.replay import ReplayOptions, open_replay
+
+    if output.exists() and not force:
+        raise OutputExistsError(f"{output}: exists; choose another --out or pass --force")
+    if output.resolve() == source.resolve():
+        raise ConfigError(f"{output}: is the input")
+    recording, run_calibration = source, None
+    if source.is_dir():
+        recording, facts = run_recording(source)
+        config = with_method(config, facts.get("method"), facts.get("traits"))
+        run_calibration = facts.get("calibration")
+    options = ReplayOptions(config=config, calibration=calibration)
+    inputs = open_replay(recording, options)
+    if calibration is None and run_calibration:
+        from treetraits.drivers.calibration import load_calibration
+
+        inputs = type(inputs)(inputs.source, load_calibration(run_calibration), inputs.field_map)
+    report = ExportReport(os.fspath(source), os.fspath(output))
+    tmp = output.with_name(output.name + ".tmp")
+    try:
+        with open(tmp, "wb") as stream:
+            writer = FoxgloveWriter(stream)
+            _export(inputs, config, writer, report, progress)
+            writer.metadata(
+                METADATA_NAME,
+                {
+                    "input": os.fspath(source),
+                    "recording": os.fspath(recording),
+                    "world_frame": report.world_frame or "",
+                    "origin_x": repr(report.origin[0]) if report.origin else "",
+                    "origin_y": repr(report.origin[1]) if report.origin else "",
+                },
+            )
+            writer.finish()
+            report.channels = dict(writer.counts)
+        os.replace(tmp, output)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    finally:
+        inputs.source.close()
+    return report
+
+
+def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progress) -> None:
+    calibration = inputs.calibration
+    from treetraits.service.replay import make_processor
+
+    processor = make_processor(config, calibration)
+    splitter, epochs = SentenceSplitter(), EpochAssembler()
+    origin: tuple[float, float] | None = None
+    poses: list[Pose] = []
+    first_time: int | None = None
+    last_time = 0
+
+    def fixes(fix: Fix | None) -> None:
+        if fix is not None and (message := location_fix(fix)) is not None:
+            writer.write(FIX, message, fix.t_host, fix.utc_ns or fix.t_host)
+
+    def outcome(o) -> None:
+        nonlocal origin, first_time
+        t = o.pose.t if o.pose is not None else o.scan.t_host
+        report.scans += 1
+        if o.pose is not None:
+            if origin is None:
+                origin = (o.pose.x, o.pose.y)
+                report.world_frame = o.pose.frame
+                _static_frames(writer, calibration, t)
+            writer.write(POSE, pose_in_map(o.pose, origin), t, t)
+            poses.append(o.pose)
+            p = o.pose
+            q = quaternion_zyx(p.yaw, p.pitch, p.roll)
+            translation = (p.x - origin[0], p.y - origin[1], p.z)
+            writer.write(TF, frame_transform(t, MAP_FRAME, BASE_FRAME, translation, q), t, t)
+        writer.write(POINTS, point_cloud(o.scan, t), t, t)
+        if o.frame is not None and (jpeg := ndvi_jpeg(o.frame, calibration)) is not None:
+            writer.write(NDVI, compressed_image(jpeg, o.frame.t_capture), t, o.frame.t_capture)
+        first_time = t if first_time is None else first_time
+
+    for topic, data, log_time, publish_time in inputs.source.messages:
+        last_time = max(last_time, log_time)
+        for o in processor.feed(topic, data, log_time, publish_time):
+            outcome(o)
+        if topic == rec.CAMERA_JPEG:
+            writer.write(IMAGE, compressed_image(bytes(data), publish_time), log_time, publish_time)
+        elif topic == rec.GNSS_NMEA:
+            for sentence in splitter.push(data, log_time):
+                if (record := decode(sentence)) is not None:
+                    fixes(epochs.push(record))
+        if progress:
+            progress(len(data))
+    for o in processor.finish():
+        outcome(o)
+    fixes(epochs.flush())
+    trees = [
+        t
+        for t in processor.mapper.trees()
+        if t.observations >= config.output.min_observations and t.kind == TREE
+    ]
+    report.trees = len(trees)
+    report.origin = origin
+    # The final map and the whole path, shown from the first scan on (Foxglove keeps a
+    # scene entity until it is replaced, and shows a topic's latest message).
+    t0 = first_time if first_time is not None else last_time
+    if poses:
+        writer.write(PATH, path_in_map(poses, origin or (0.0, 0.0), t0), t0, t0)
+    if trees:
+        writer.write(TREES, scene_update(trees, origin or (0.0, 0.0), t0), t0, t0)
+
+
+def _static_frames(writer: FoxgloveWriter, calibration: Calibration, t: int) -> None:
+    """lidar on base_link, camera on lidar: fixed, published once with the first pose."""
+    T = calibration.T_base_lidar
+    writer.write(
+        TF,
+        frame_transform(t, BASE_FRAME, LIDAR_FRAME, T[:3, 3], matrix_quaternion(T[:3, :3])),
+        t,
+        t,
+    )
+    if calibration.T_camera_lidar is not None:
+        T = np.linalg.inv(calibration.T_camera_lidar)  # the camera in the lidar frame
+        writer.write(
+            TF,
+            frame_transform(t, LIDAR_FRAME, CAMERA_FRAME, T[:3, 3], matrix_quaternion(T[:3, :3])),
+            t,
+            t,
+        )
