@@ -208,7 +208,8 @@ def test_the_trees_are_the_replays_cylinders_coloured_by_ndvi(survey):
         meta = {kv.key: kv.value for kv in e.metadata}
         assert meta["tree_id"] == tree_id
         if row["ndvi"]:
-            assert float(meta["ndvi"]) == pytest.approx(float(row["ndvi"]), abs=0.0005)
+            # Both are rounded (3 decimals here, 4 in the CSV): each half a unit off at most.
+            assert float(meta["ndvi"]) == pytest.approx(float(row["ndvi"]), abs=0.00055)
             if float(row["ndvi"]) > 0.3:  # foliage: the green half of RdYlGn
                 assert c.color.g > c.color.r
         else:
