@@ -294,8 +294,10 @@ def detect(
     lidar_xy = T_base_lidar[:2, 3]
     voxel_height = ground.height(voxels)
     blobs = _band_blobs(xyz, height, config.cluster)
-    stem_of = _stems(xyz, height, ring, T_base_lidar[:3, 3], blobs, voxels, voxel_height, config)
-    counts["stems"] = int(stem_of.max(initial=-1) + 1)
+    stem_of, is_stem = _stems(
+        xyz, height, ring, T_base_lidar[:3, 3], blobs, voxels, voxel_height, config
+    )
+    counts["stems"] = int(sum(is_stem))
     clock.lap("stems")
 
     # Crowns: Euclidean clustering of the voxels that reach above the understorey. What
@@ -311,19 +313,13 @@ def detect(
         voxels[crown_index], config.cluster.tolerance_m, config.cluster.method
     )
     under = free & ~crown
-    trunk_like = _near_blobs(voxels, voxel_height, blobs, stem_of, config.cluster)
     labels[under] = join_understorey(
-        voxels,
-        labels,
-        under,
-        core,
-        trunk_like,
-        config.cluster.tolerance_m,
-        int(labels.max(initial=-1)) + 1,
+        voxels, labels, under, core, config.cluster.tolerance_m, int(labels.max(initial=-1)) + 1
     )
+    trunk_blobs = [blob for blob, stem in zip(blobs, is_stem, strict=True) if not stem]
+    labels, counts["split"] = split_at_trunks(labels, voxels, crown, trunk_blobs, config.cluster)
     stemmed = stem_of >= 0
     labels[stemmed] = labels.max(initial=-1) + 1 + stem_of[stemmed]
-    labels, counts["split"] = split_at_trunks(labels, voxel_of, voxels, xyz, height, config.cluster)
     clusters_kept = _size_filter(labels, config.cluster)
     counts["clusters_dropped"] = int(labels.max(initial=-1) + 1 - len(clusters_kept))
     clock.lap("cluster")
@@ -345,17 +341,18 @@ def ground_model(xyz: np.ndarray, config: DetectionConfig) -> GroundModel:
 
 def split_at_trunks(
     labels: np.ndarray,
-    voxel_of: np.ndarray,
     voxels: np.ndarray,
-    xyz: np.ndarray,
-    height: np.ndarray,
+    crown: np.ndarray,
+    trunk_blobs: list[tuple[int, np.ndarray]],
     config: ClusterConfig,
 ) -> tuple[np.ndarray, int]:
     """Crowns that touch (a hedgerow) make one cluster along the row: such a cluster is
-    cut into one per trunk, each voxel to the nearest trunk (x-y). A trunk: returns in the
-    trunk band above the terrain, below the skirts, forming a blob no wider than a trunk.
-    Only clusters at least two tree spacings long are looked at (a single crown, even an
-    old one, has one trunk). Returns the new voxel labels and how many clusters were cut."""
+    cut into one per trunk, each voxel to the nearest trunk (x-y). Trunks: the trunk
+    band's blobs (`_band_blobs`, stems left out) whose nearest crown voxel (x-y, `crown`
+    marks them) is the cluster's: a trunk stands under its own crown, which need not
+    reach down to it. Only clusters at least two tree spacings long are looked at (a
+    single crown, even an old one, has one trunk). Returns the new voxel labels and how
+    many clusters were cut."""
     clustered = np.flatnonzero(labels >= 0)
     order = clustered[np.argsort(labels[clustered], kind="stable")]
     starts = np.flatnonzero(np.diff(labels[order], prepend=-2))
@@ -364,14 +361,19 @@ def split_at_trunks(
         for cells in np.split(order, starts[1:])
         if len(cells) and horizontal_extent(voxels[cells, :2]) >= 2 * config.min_tree_spacing_m
     ]
-    if not long:
+    crown_index = np.flatnonzero(crown & (labels >= 0))
+    if not long or not trunk_blobs or len(crown_index) == 0:
         return labels, 0
-    point_label = labels[voxel_of]
+    from scipy.spatial import cKDTree
+
+    centres = np.array([centre for _, centre in trunk_blobs])
+    _, nearest_voxel = cKDTree(voxels[crown_index, :2]).query(centres)
+    under = labels[crown_index[nearest_voxel]]
     next_label = int(labels.max(initial=-1)) + 1
     cut = 0
     for cells in long:
-        members = np.flatnonzero(point_label == labels[cells[0]])
-        trunks = _trunks(xyz[members], height[members], config)
+        mine = [trunk_blobs[k] for k in np.flatnonzero(under == labels[cells[0]])]
+        trunks = _trunks(mine, config)
         if len(trunks) < 2:
             continue
         gaps = voxels[cells, None, :2] - trunks[None]
@@ -384,28 +386,16 @@ def split_at_trunks(
 
 def _stems(
     xyz, height, ring, lidar_xyz, blobs, voxels, voxel_height, config: DetectionConfig
-) -> np.ndarray:
-    """The stem (`pipeline.stems`) each voxel belongs to, -1 for none."""
+) -> tuple[np.ndarray, list[bool]]:
+    """The stem (`pipeline.stems`) each voxel belongs to (-1 for none), and which of the
+    band's blobs are stems."""
     cluster = config.cluster
     if cluster.min_stem_height_m <= 0 or not blobs:
-        return np.full(len(voxels), -1, dtype=np.int64)
+        return np.full(len(voxels), -1, dtype=np.int64), [False] * len(blobs)
     centres = np.array([centre for _, centre in blobs])
     stems = find_stems(xyz, height, ring, lidar_xyz, centres, cluster, config.classify)
-    return stem_of_voxels(voxels, voxel_height, stems, cluster)
-
-
-def _near_blobs(voxels, voxel_height, blobs, stem_of, config: ClusterConfig) -> np.ndarray:
-    """Voxels of the trunk band's blobs that are not stems: trunks."""
-    near = np.zeros(len(voxels), dtype=bool)
-    if not blobs:
-        return near
-    centres = np.array([centre for _, centre in blobs])
-    low = voxel_height <= config.trunk_band_m[1] + config.voxel_m
-    gaps = np.hypot(
-        voxels[:, None, 0] - centres[None, :, 0], voxels[:, None, 1] - centres[None, :, 1]
-    )
-    near = low & (gaps.min(axis=1) <= config.max_trunk_width_m / 2 + config.voxel_m / 2)
-    return near & (stem_of < 0)
+    is_stem = [any(np.array_equal(c, stem.centre) for stem in stems) for c in centres]
+    return stem_of_voxels(voxels, voxel_height, stems, cluster), is_stem
 
 
 def _band_blobs(
@@ -429,12 +419,11 @@ def _band_blobs(
     return found
 
 
-def _trunks(xyz: np.ndarray, height: np.ndarray, config: ClusterConfig) -> np.ndarray:
-    """Trunk centres (x-y) among the trunk band's returns of `xyz`: its blobs
-    (`_band_blobs`), each at least `min_tree_spacing_m` from one with more returns."""
-    found = _band_blobs(xyz, height, config)
+def _trunks(blobs: list[tuple[int, np.ndarray]], config: ClusterConfig) -> np.ndarray:
+    """Trunk centres (x-y) among band blobs: each at least `min_tree_spacing_m` from one
+    with more returns."""
+    found = sorted(blobs, key=lambda item: -item[0])
     # The best seen first: a blob of a few returns within a tree spacing of it gives way.
-    found.sort(key=lambda item: -item[0])
     kept: list[np.ndarray] = []
     for _, centre in found:
         if all(np.hypot(*(centre - k)) >= config.min_tree_spacing_m for k in kept):

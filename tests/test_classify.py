@@ -58,7 +58,8 @@ OBJECTS = {
     "person": (person(5.0, 1.0, 0.0), (5.0, 1.0), {SLENDER, SMOOTH, THIN}),
     "post": (cylinder(4.0, -2.0, 0.0, 2.0, 0.05), (4.0, -2.0), {THIN, SLENDER, SMOOTH}),
     "vehicle": (vehicle(7.0, 3.0, 0.0, 0.3), (7.0, 3.0), {SMOOTH, WIDE, FLOATING}),
-    "wall": (box(6.0, -5.0, 0.0, 2.5, 8.0, 0.2), (6.0, -5.0), {SMOOTH, WIDE}),
+    # Its foot, where the face above is out of reach, is a low object of its own.
+    "wall": (box(6.0, -5.0, 0.0, 2.5, 8.0, 0.2), (6.0, -5.0), {SMOOTH, WIDE, LOW}),
     "weeds": (weed_clump(3.0, 3.0, 0.0, 0.4, 0.5, RNG), (3.0, 3.0), {LOW}),
     "drip line": (
         tube(np.array([[2.0, -3.0, 0.35], [10.0, -3.0, 0.35]]), 0.01),
