@@ -15,7 +15,7 @@ import numpy as np
 
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
-from treetraits.pipeline.classify import Votes
+from treetraits.pipeline.classify import LOW, Votes
 from treetraits.pipeline.config import MapperConfig
 from treetraits.pipeline.detection import Cluster, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
@@ -171,6 +171,11 @@ class TreeMapper:
                 continue
             tree = self._trees.setdefault(decision.tree_id, _Tree(new_traits(self.config.traits)))
             tree.votes.add(cluster.verdict)
+            if cluster.verdict == LOW:
+                # The understorey (weeds, a drip line's span, a skirt alone) adds nothing
+                # to a tree: lower than any tree, it can give it no height, only a
+                # drip line's length as its width or a weed's NDVI.
+                continue
             outline = steady and (placeable or isinstance(tree.traits, RobustTraits))
             self._observe(tree, cluster, traits_from_base, decision.tree_id, centres, outline)
         for kept, absorbed in step.merged:
