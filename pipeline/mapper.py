@@ -17,7 +17,7 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
 from treetraits.pipeline.classify import Votes
 from treetraits.pipeline.config import MapperConfig
-from treetraits.pipeline.detection import Cluster, GroundModel, StageClock, detect
+from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
@@ -142,7 +142,28 @@ class TreeMapper:
         detection = detect(points, ndvi_of, self.T_base_lidar, self.config.detection, stage_ms)
         if ndvi_of is not None:
             ndvi_reason = ndvi_of.reason
+        return self._map(detection, t, map_from_base, pose, motion, ndvi_reason, stage_ms)
 
+    def process_detection(
+        self, detection: Detection, t: int, pose: Pose, ndvi: str = "no_frame"
+    ) -> ScanResult:
+        """The mapping half of `process` for clusters detected elsewhere (scan middle `t`,
+        `pose` as for `process`): what `bench/scale.py` grows a survey with, where
+        detecting a synthetic orchard's points would only time the detection again."""
+        stage_ms: dict[str, float] | None = {} if self.timing else None
+        map_from_base = self._map_from_base(pose, None, t)
+        return self._map(detection, t, map_from_base, pose, None, ndvi, stage_ms)
+
+    def _map(
+        self,
+        detection: Detection,
+        t: int,
+        map_from_base: np.ndarray,
+        pose: Pose | None,
+        motion: Motion | None,
+        ndvi_reason: str,
+        stage_ms: dict[str, float] | None,
+    ) -> ScanResult:
         # m_k in the map frame; the gate compares positions in the LiDAR frame.
         clock = StageClock(stage_ms)
         measurements = self._measurements(detection.clusters, map_from_base)
