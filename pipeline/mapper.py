@@ -245,10 +245,11 @@ class TreeMapper:
             for track in self.tracker.tracks
             if ids is None or track.tree_id in ids
         ]
-        if retired:
-            for tree_id, (tree, traits_from_map) in self._retired.items():
-                if ids is None or tree_id in ids:
-                    out.append(self._moved(tree, traits_from_map, back))
+        if retired:  # `ids` looked up, not scanned for: the finalised trees are many
+            wanted = self._retired if ids is None else (i for i in ids if i in self._retired)
+            for tree_id in wanted:
+                tree, traits_from_map = self._retired[tree_id]
+                out.append(self._moved(tree, traits_from_map, back))
         return sorted(out, key=lambda tree: tree.tree_id)
 
     def _tracked(self, track, back: np.ndarray) -> TrackedTree:
