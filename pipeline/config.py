@@ -279,6 +279,12 @@ class TrackingConfig:
     # a neighbour 5 m away pull a tree over on the twin's 23 m drive, after which the
     # merge folded two real trees into one. 0 turns it off (the paper exactly).
     max_association_m: float = 1.5
+    # A tree whose centre is farther than this from the robot is finalised (its traits
+    # measured, its record written) and dropped from memory, so a scan's cost and the
+    # memory stay flat over a survey of any size. A tree seen again after that starts
+    # anew (a serpentine's return lane along rows longer than this). 0 keeps every tree.
+    # At least the view's reach (the crop box's corner plus view_margin_m) plus 3 m.
+    retire_m: float = 50.0
 
     def __post_init__(self) -> None:
         _validate_tracking(self)
@@ -327,6 +333,24 @@ class MapperConfig:
     detection: DetectionConfig = field(default_factory=DetectionConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     traits: TraitsConfig = field(default_factory=TraitsConfig)
+
+    def __post_init__(self) -> None:
+        reach = retire_reach_m(self)
+        _need(
+            self.tracking.retire_m == 0 or self.tracking.retire_m >= reach,
+            f"tracking.retire_m must be 0 or at least {reach:.1f} m with this crop box and "
+            f"view margin (a tree finalised must be out of view for good)",
+        )
+
+
+def retire_reach_m(config: MapperConfig) -> float:
+    """The least `tracking.retire_m`: the farthest a tree in view can be from the robot
+    (the crop box's far corner grown by the view margin) plus 3 m (a crown's reach into
+    the neighbours' Voronoi cut)."""
+    crop, margin = config.detection.crop, config.tracking.view_margin_m
+    x = max(abs(v) for v in crop.x_m) + margin
+    y = max(abs(v) for v in crop.y_m) + margin
+    return math.hypot(x, y) + 3.0
 
 
 def _need(ok: bool, what: str) -> None:
@@ -395,6 +419,7 @@ def _validate_tracking(t: TrackingConfig) -> None:
     _need(math.isfinite(t.view_margin_m), "tracking.view_margin_m must be finite")
     _need(t.merge_distance_m >= 0, "tracking.merge_distance_m must be >= 0 (0: off)")
     _need(t.max_association_m >= 0, "tracking.max_association_m must be >= 0 (0: off)")
+    _need(t.retire_m >= 0, "tracking.retire_m must be >= 0 (0: keep every tree)")
 
 
 def _validate_traits(r: TraitsConfig) -> None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import json
 import math
 import os
@@ -278,29 +279,66 @@ def csv_row(tree: Tree) -> list[str]:
     ]
 
 
-def write_trees_csv(path: str | os.PathLike, trees: Iterable[Tree]) -> None:
-    """trees.csv with exactly CSV_COLUMNS, written atomically (temp file, fsync, rename)."""
+class RenderCache:
+    """Each record's text from the previous write, by the record itself (`Tree` is frozen):
+    a writer that gets the same records again (a survey's finalised trees, export after
+    export) formats only the new ones. Holds the records of the last write only."""
+
+    def __init__(self) -> None:
+        self._texts: dict[Tree, str] = {}
+
+    def texts(self, trees: Iterable[Tree], render: Callable[[Tree], str]) -> list[str]:
+        old, new = self._texts, {}
+        for tree in trees:
+            text = old.get(tree)
+            new[tree] = render(tree) if text is None else text
+        self._texts = new
+        return list(new.values())
+
+
+def write_trees_csv(
+    path: str | os.PathLike, trees: Iterable[Tree], cache: RenderCache | None = None
+) -> None:
+    """trees.csv with exactly CSV_COLUMNS, written atomically (temp file, fsync, rename).
+    `cache`: the lines of records written before are reused."""
+    lines = (cache or RenderCache()).texts(trees, _csv_line)
 
     def write(f: TextIO) -> None:
-        writer = csv.writer(f, lineterminator="\n")
-        writer.writerow(CSV_COLUMNS)
-        for tree in trees:
-            writer.writerow(csv_row(tree))
+        csv.writer(f, lineterminator="\n").writerow(CSV_COLUMNS)
+        f.writelines(lines)
 
     _write_atomically(path, write)
 
 
-def write_trees_geojson(path: str | os.PathLike, trees: Iterable[Tree]) -> None:
+def _csv_line(tree: Tree) -> str:
+    out = io.StringIO()
+    csv.writer(out, lineterminator="\n").writerow(csv_row(tree))
+    return out.getvalue()
+
+
+def write_trees_geojson(
+    path: str | os.PathLike, trees: Iterable[Tree], cache: RenderCache | None = None
+) -> None:
     """trees.geojson: a FeatureCollection of WGS84 Points (null geometry for a tree not
     yet georeferenced), the trees.csv values as properties (and `reason` for rejected
-    objects: rejected.geojson is written by this too); written atomically."""
+    objects: rejected.geojson is written by this too); written atomically. The text is
+    `json.dump(collection, indent=1)`'s, byte for byte, each feature formatted once
+    (`cache`: the features of records written before are reused)."""
+    features = (cache or RenderCache()).texts(trees, _feature_text)
 
     def write(f: TextIO) -> None:
-        features = [_feature(tree) for tree in trees]
-        json.dump({"type": "FeatureCollection", "features": features}, f, indent=1)
-        f.write("\n")
+        f.write('{\n "type": "FeatureCollection",\n "features": [')
+        if features:
+            f.write("\n" + ",\n".join(features) + "\n ")
+        f.write("]\n}\n")
 
     _write_atomically(path, write)
+
+
+def _feature_text(tree: Tree) -> str:
+    """One feature as json.dump(indent=1) writes it two levels deep (in "features")."""
+    text = json.dumps(_feature(tree), indent=1)
+    return "\n".join("  " + line for line in text.split("\n"))
 
 
 def _feature(tree: Tree) -> dict[str, Any]:

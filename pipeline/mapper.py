@@ -17,7 +17,7 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
 from treetraits.pipeline.classify import LOW, Votes
 from treetraits.pipeline.config import MapperConfig
-from treetraits.pipeline.detection import Cluster, GroundModel, StageClock, detect
+from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
@@ -61,6 +61,9 @@ class ScanResult:
     ground: GroundModel  # the scan's ground (base frame)
     counts: dict[str, int] = field(default_factory=dict)
     stage_ms: dict[str, float] = field(default_factory=dict)
+    # Trees finalised by this scan (out of `tracking.retire_m`): their records no longer
+    # change, and the mapper keeps only those (`TreeMapper.trees`).
+    retired: list[int] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -105,6 +108,9 @@ class TreeMapper:
         self.tracker = Tracker(self.config.tracking)
         self.frame: str | None = None  # fixed by the first scan
         self._trees: dict[int, _Tree] = {}
+        # Finalised trees: their record as it was, and the traits frame it was made in
+        # (a later move of the map carries it along; see `trees`).
+        self._retired: dict[int, tuple[TrackedTree, np.ndarray]] = {}
         self._last_t: int | None = None
         self._last_pose: Pose | None = None  # for the yaw rate (the outline skips fast turns)
         # The frame the robust traits accumulate in, from the map frame: the world itself
@@ -142,7 +148,28 @@ class TreeMapper:
         detection = detect(points, ndvi_of, self.T_base_lidar, self.config.detection, stage_ms)
         if ndvi_of is not None:
             ndvi_reason = ndvi_of.reason
+        return self._map(detection, t, map_from_base, pose, motion, ndvi_reason, stage_ms)
 
+    def process_detection(
+        self, detection: Detection, t: int, pose: Pose, ndvi: str = "no_frame"
+    ) -> ScanResult:
+        """The mapping half of `process` for clusters detected elsewhere (scan middle `t`,
+        `pose` as for `process`): what `bench/scale.py` grows a survey with, where
+        detecting a synthetic orchard's points would only time the detection again."""
+        stage_ms: dict[str, float] | None = {} if self.timing else None
+        map_from_base = self._map_from_base(pose, None, t)
+        return self._map(detection, t, map_from_base, pose, None, ndvi, stage_ms)
+
+    def _map(
+        self,
+        detection: Detection,
+        t: int,
+        map_from_base: np.ndarray,
+        pose: Pose | None,
+        motion: Motion | None,
+        ndvi_reason: str,
+        stage_ms: dict[str, float] | None,
+    ) -> ScanResult:
         # m_k in the map frame; the gate compares positions in the LiDAR frame.
         clock = StageClock(stage_ms)
         measurements = self._measurements(detection.clusters, map_from_base)
@@ -156,11 +183,7 @@ class TreeMapper:
 
         # Traits: each cluster to the tree it went to; then trees merged this scan.
         traits_from_base = self._traits_from_map @ map_from_base
-        centres = {
-            tr.tree_id: (self._traits_from_map[:2, :3] @ tr.state[:3])
-            + self._traits_from_map[:2, 3]
-            for tr in self.tracker.tracks
-        }
+        centres = _Centres(self.tracker.tracks, self._traits_from_map)
         # World points for the outline: not while turning fast; and for the paper's traits
         # (which use the outline for the centre only) not without a pose or a motion, where
         # the cells could not follow the robot and the Kalman state is the better centre.
@@ -186,6 +209,7 @@ class TreeMapper:
             replace(d, tree_id=_resolve(alias, d.tree_id)) if d.tree_id in alias else d
             for d in step.decisions
         ]
+        retired = self._retire(map_from_base)
         clock.lap("traits")
 
         results = [
@@ -214,39 +238,79 @@ class TreeMapper:
             ground=detection.ground,
             counts={**detection.counts, "candidates": step.candidates},
             stage_ms=stage_ms or {},
+            retired=retired,
         )
 
-    def trees(self) -> list[TrackedTree]:
-        """Every tree in memory, by id, with the configured trait method's values."""
+    def trees(self, ids: set[int] | None = None, *, retired: bool = True) -> list[TrackedTree]:
+        """Every tree, by id, with the configured trait method's values: those in memory
+        and (`retired`) those finalised. `ids`: only these."""
+        back = np.linalg.inv(self._traits_from_map)
+        out = [
+            self._tracked(track, back)
+            for track in self.tracker.tracks
+            if ids is None or track.tree_id in ids
+        ]
+        if retired:  # `ids` looked up, not scanned for: the finalised trees are many
+            wanted = self._retired if ids is None else (i for i in ids if i in self._retired)
+            for tree_id in wanted:
+                tree, traits_from_map = self._retired[tree_id]
+                out.append(self._moved(tree, traits_from_map, back))
+        return sorted(out, key=lambda tree: tree.tree_id)
+
+    def _tracked(self, track, back: np.ndarray) -> TrackedTree:
         classify = self.config.detection.classify
-        out = []
-        for track in sorted(self.tracker.tracks, key=lambda tr: tr.tree_id):
-            tree = self._trees[track.tree_id]
-            position = track.state[:3]
-            centre = tree.traits.centre()
-            x, y = position[0], position[1]
-            if centre is not None:  # traits frame -> the mapper's frame
-                back = np.linalg.inv(self._traits_from_map)
-                x, y = back[:2, :2] @ centre + back[:2, 3]
-            ndvi = tree.ndvi_sum / tree.ndvi_count if tree.ndvi_count else None
-            out.append(
-                TrackedTree(
-                    tree_id=track.tree_id,
-                    x=float(x),
-                    y=float(y),
-                    z=float(position[2]),
-                    frame=self.frame or LIDAR_FRAME,
-                    width_m=float(tree.traits.width),
-                    height_m=float(tree.traits.height),
-                    ndvi=ndvi,
-                    observations=track.observations,
-                    first_seen=track.first_seen,
-                    last_seen=track.last_seen,
-                    traits=tree.traits.method,
-                    kind=tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all),
-                )
-            )
-        return out
+        tree = self._trees[track.tree_id]
+        position = track.state[:3]
+        centre = tree.traits.centre()
+        x, y = position[0], position[1]
+        if centre is not None:  # traits frame -> the mapper's frame
+            x, y = back[:2, :2] @ centre + back[:2, 3]
+        ndvi = tree.ndvi_sum / tree.ndvi_count if tree.ndvi_count else None
+        return TrackedTree(
+            tree_id=track.tree_id,
+            x=float(x),
+            y=float(y),
+            z=float(position[2]),
+            frame=self.frame or LIDAR_FRAME,
+            width_m=float(tree.traits.width),
+            height_m=float(tree.traits.height),
+            ndvi=ndvi,
+            observations=track.observations,
+            first_seen=track.first_seen,
+            last_seen=track.last_seen,
+            traits=tree.traits.method,
+            kind=tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all),
+        )
+
+    def _moved(self, tree: TrackedTree, traits_from_map: np.ndarray, back: np.ndarray):
+        """A finalised tree in the mapper's frame now: as it was, unless the map moved
+        since (no poses, or odom carried into utm)."""
+        if traits_from_map is self._traits_from_map and tree.frame == (self.frame or LIDAR_FRAME):
+            return tree
+        now_from_then = back @ traits_from_map
+        x, y, z = now_from_then[:3, :3] @ (tree.x, tree.y, tree.z) + now_from_then[:3, 3]
+        return replace(tree, x=float(x), y=float(y), z=float(z), frame=self.frame or LIDAR_FRAME)
+
+    def _retire(self, map_from_base: np.ndarray) -> list[int]:
+        """Finalise the trees farther than `tracking.retire_m` from the robot: out of view
+        for good (the config checks the distance against the view's reach), so nothing of
+        this run changes them any more; memory and a scan's cost then follow the trees
+        around the robot, not the survey's size."""
+        limit = self.config.tracking.retire_m
+        if limit <= 0 or not self.tracker.tracks:
+            return []
+        xy = self.tracker.positions()[:, :2]
+        far = np.hypot(*(xy - map_from_base[:2, 3]).T) > limit
+        if not far.any():
+            return []
+        back = np.linalg.inv(self._traits_from_map)
+        gone = [tr for tr, out in zip(self.tracker.tracks, far, strict=True) if out]
+        for track in gone:
+            self._retired[track.tree_id] = (self._tracked(track, back), self._traits_from_map)
+            del self._trees[track.tree_id]
+        ids = {tr.tree_id for tr in gone}
+        self.tracker.drop(ids)
+        return sorted(ids)
 
     # --- steps -------------------------------------------------------------------------
 
@@ -319,7 +383,7 @@ class TreeMapper:
         world = ground_world = None
         if outline:  # both methods keep the outline in the world frame (its centre)
             world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
-            world = world[_nearest_is(world[:, :2], tree_id, centres)]
+            world = world[centres.nearest_is(world[:, :2], tree_id)]
             # The ground under the cluster, carried into the world with the full attitude.
             foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
             ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
@@ -384,18 +448,32 @@ def _resolve(alias: dict[int, int], tree_id: int) -> int:
     return tree_id
 
 
-def _nearest_is(xy: np.ndarray, tree_id: int, centres: dict[int, np.ndarray]) -> np.ndarray:
-    """Points nearer (x-y) to this tree's centre than to any other tree's: a cluster that
-    took in a piece of a neighbour's crown gives the neighbour's part back (a Voronoi
-    cut between the trees), so it never widens this tree's accumulated cloud."""
-    own = centres[tree_id]
-    reach = float(np.sqrt(((xy - own) ** 2).sum(axis=1).max())) if len(xy) else 0.0
-    others = [c for i, c in centres.items() if i != tree_id and np.hypot(*(c - own)) < 2 * reach]
-    if not others:
-        return np.ones(len(xy), dtype=bool)
-    own_d2 = ((xy - own) ** 2).sum(axis=1)
-    other_d2 = ((xy[:, None, :] - np.array(others)[None, :, :]) ** 2).sum(axis=2).min(axis=1)
-    return own_d2 <= other_d2
+class _Centres:
+    """The tracked trees' x-y centres in the traits frame (their Kalman states), as
+    arrays: the Voronoi cut compares a cluster with its neighbours at array speed."""
+
+    def __init__(self, tracks, traits_from_map: np.ndarray):
+        self.ids = np.array([tr.tree_id for tr in tracks], dtype=np.int64)
+        states = np.array([tr.state[:3] for tr in tracks]).reshape(-1, 3)
+        # Row by row as `R @ p + t` for each tree, so the values are those of one at a time.
+        self.xy = np.array(
+            [traits_from_map[:2, :3] @ p + traits_from_map[:2, 3] for p in states]
+        ).reshape(-1, 2)
+
+    def nearest_is(self, xy: np.ndarray, tree_id: int) -> np.ndarray:
+        """Points nearer (x-y) to this tree's centre than to any other tree's: a cluster
+        that took in a piece of a neighbour's crown gives the neighbour's part back (a
+        Voronoi cut between the trees), so it never widens this tree's accumulated cloud."""
+        own = self.xy[np.flatnonzero(self.ids == tree_id)[0]]
+        reach = float(np.sqrt(((xy - own) ** 2).sum(axis=1).max())) if len(xy) else 0.0
+        gap = self.xy - own
+        near = (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
+        if not near.any():
+            return np.ones(len(xy), dtype=bool)
+        others = self.xy[near]
+        own_d2 = ((xy - own) ** 2).sum(axis=1)
+        other_d2 = ((xy[:, None, :] - others[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+        return own_d2 <= other_d2
 
 
 class _NdviOf:

@@ -301,6 +301,10 @@ class Tracker:
         track.scans.add(self._scan)
         track.last_seen = t
 
+    def drop(self, tree_ids: set[int]) -> None:
+        """Forget these trees (the mapper finalised them: out of range for good)."""
+        self.tracks = [tr for tr in self.tracks if tr.tree_id not in tree_ids]
+
     def fold(self, keep_id: int, drop_id: int) -> None:
         """Tree `drop_id` is tree `keep_id` seen apart (the mapper's outlines say so): one
         tree, as the merge makes it."""

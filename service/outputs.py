@@ -24,11 +24,13 @@ from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.georef import (
     FieldMapIndex,
+    RenderCache,
     georeference,
     missing_trees,
     write_trees_csv,
     write_trees_geojson,
 )
+from treetraits.pipeline.mapper import TreeMapper
 from treetraits.service.config import OutputConfig
 from treetraits.service.store import Observation, TraitStore
 from treetraits.service.survey import ScanOutcome, SurveyProcessor
@@ -76,6 +78,12 @@ class RunWriter:
         except sqlite3.Error as exc:  # a full disk, a directory in its place
             raise OutputError(f"{self.store_path}: store not created: {_sqlite_text(exc)}") from exc
         self._field_index: FieldMapIndex | None = None
+        # Trees the mapper finalised (`tracking.retire_m`), georeferenced once when they
+        # were: reported ones and rejected ones, by tree id. Exports take them as they
+        # are and georeference only the trees still in memory.
+        self._final: dict[str, Tree] = {}
+        self._final_rejected: dict[str, Tree] = {}
+        self._render = {name: RenderCache() for name in (CSV_NAME, GEOJSON_NAME, REJECTED_NAME)}
         self._closed = False
         if facts:
             self.set_facts(facts)
@@ -88,15 +96,23 @@ class RunWriter:
         """Objects seen as often, that are not trees (each with its reason in `kind`)."""
         return [t for t in self.seen() if t.kind != TREE]
 
-    def seen(self) -> list:
-        return [t for t in self.processor.mapper.trees() if t.observations >= self.min_observations]
+    def seen(self, ids: set[int] | None = None, *, retired: bool = True) -> list:
+        """The mapper's trees seen in `min_observations` scans: every one, or `ids`
+        among them, with or without those it finalised (`retired`)."""
+        mapper = self.processor.mapper
+        if isinstance(mapper, TreeMapper):
+            trees = mapper.trees(ids, retired=retired)
+        else:  # a mapper that keeps every tree in memory
+            trees = [t for t in mapper.trees() if ids is None or t.tree_id in ids]
+        return [t for t in trees if t.observations >= self.min_observations]
 
-    def georeferenced(self, only: set[str] | None = None) -> list[Tree]:
-        """The reported trees as output records (`only`: just these ids' records)."""
+    def georeferenced(self, only: set[str] | None = None, trees: list | None = None) -> list[Tree]:
+        """The reported trees (or `trees`, mapped trees) as output records (`only`: just
+        these ids' records; matching weighs all of them)."""
         localizer = self.processor.localizer
         field_map = self._index() or self.field_map
         return georeference(
-            self.reported(),
+            self.reported() if trees is None else [t for t in trees if t.kind == TREE],
             localizer.grid,
             field_map,
             utm_from_odom=self.processor.utm_from_odom,
@@ -125,12 +141,30 @@ class RunWriter:
         ]
         self._follow(outcome)
         touched = {str(i) for i in (*result.created, *result.updated)}
+        retired = list(getattr(result, "retired", ()))
         if self.processor.anchor is not self._anchor:
             # The map moved from odom to utm (a late first fix): every tree is placed anew.
             self._anchor = self.processor.anchor
             trees = self.georeferenced()
+            final = {t.tree_id: t for t in trees if t.tree_id in self._final}
+            rejected = self.georeferenced_rejected()
+            final_rejected = {t.tree_id: t for t in rejected if t.tree_id in self._final_rejected}
         else:
-            trees = self.georeferenced(only=touched) if touched else []
+            final, final_rejected = self._final, self._final_rejected
+            # Matching weighs the trees in memory (a finalised tree is out of reach of any
+            # tree the scan touched), with the ones finalised now.
+            if touched or retired:
+                live = self.seen(retired=False) + self.seen(set(retired))
+                trees = self.georeferenced(touched | {str(i) for i in retired}, live)
+            else:
+                trees = []
+        if retired:
+            gone = {str(i) for i in retired}
+            final = {**final, **{t.tree_id: t for t in trees if t.tree_id in gone}}
+            final_rejected = {
+                **final_rejected,
+                **{t.tree_id: t for t in self._georeferenced_rejected(self.seen(set(retired)))},
+            }
         try:
             self.store.commit_scan(observations, trees)
         except sqlite3.Error as exc:
@@ -138,14 +172,16 @@ class RunWriter:
             raise OutputError(
                 f"{self.store_path}: scan not committed: {_sqlite_text(exc)}"
             ) from exc
+        self._final, self._final_rejected = final, final_rejected
         self.scans += 1
 
     def export(self) -> Exported:
         """Rewrite trees.csv, trees.geojson (found and missing trees) and rejected.geojson
         (each atomically), and the store's missing trees and rejected objects."""
-        found = self.georeferenced()
+        live = self.seen(retired=False)
+        found = _by_id(self.georeferenced(trees=live), self._final)
         missing = self.missing(found)
-        rejected = self.georeferenced_rejected()
+        rejected = _by_id(self._georeferenced_rejected(live), self._final_rejected)
         try:
             self.store.replace_unmatched(missing, rejected)
         except sqlite3.Error as exc:
@@ -161,7 +197,7 @@ class RunWriter:
         ):
             path = self.out_dir / name
             try:
-                write(path, rows)
+                write(path, rows, self._render[name])
             except OSError as exc:
                 raise OutputError(
                     f"{path}: not rewritten ({exc.strerror or exc}); the previous version stays"
@@ -170,9 +206,15 @@ class RunWriter:
         return Exported(found, missing, rejected)
 
     def georeferenced_rejected(self) -> list[Tree]:
+        return self._georeferenced_rejected(self.seen())
+
+    def _georeferenced_rejected(self, seen: list) -> list[Tree]:
         localizer = self.processor.localizer
         return georeference(
-            self.rejected(), localizer.grid, (), utm_from_odom=self.processor.utm_from_odom
+            [t for t in seen if t.kind != TREE],
+            localizer.grid,
+            (),
+            utm_from_odom=self.processor.utm_from_odom,
         )
 
     def missing(self, found: list[Tree]) -> list[Tree]:
@@ -271,6 +313,14 @@ class _PathPoint:
     ndvi: float | None = None
     observations: int = 0
     first_seen: int = 0
+
+
+def _by_id(live: list[Tree], final: dict[str, Tree]) -> list[Tree]:
+    """The records of the trees in memory and of those finalised, by tree id (the order
+    of the mapper's trees)."""
+    if not final:
+        return live
+    return sorted([*live, *final.values()], key=lambda tree: int(tree.tree_id))
 
 
 def _sqlite_text(exc: sqlite3.Error) -> str:

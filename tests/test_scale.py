@@ -1,0 +1,118 @@
+"""Orchard scale: trees out of range are finalised and dropped from memory with their
+records unchanged, and the outputs are the same as when every tree is kept (issue 13)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+
+from tests.test_mapper import grid_drive
+from treetraits.drivers.records import POINT_DTYPE
+from treetraits.errors import ConfigError
+from treetraits.pipeline.config import MapperConfig, TrackingConfig, TraitsConfig
+from treetraits.pipeline.georef import _feature, write_trees_geojson
+from treetraits.pipeline.mapper import TreeMapper
+from treetraits.service.outputs import RunWriter
+from treetraits.service.survey import ScanOutcome, SurveyProcessor
+
+FAR_M = 100.0  # beyond the default tracking.retire_m (50 m)
+
+
+def config(method: str, retire_m: float) -> MapperConfig:
+    return MapperConfig(
+        tracking=TrackingConfig(retire_m=retire_m), traits=TraitsConfig(method=method)
+    )
+
+
+def survey(method: str, retire_m: float, out_dir):
+    """The grid drive through a mapper and a RunWriter, then two scans 100 m on (an empty
+    one: the robot drove away from the trees). Returns the mapper, the writer and the
+    ScanResults of the drive and of the two far scans."""
+    data = grid_drive()
+    mapper = TreeMapper(config(method, retire_m), data.calibration)
+    out_dir.mkdir()
+    writer = RunWriter(out_dir, SurveyProcessor(mapper, data.calibration))
+    results = []
+    for scan, frame, pose in zip(data.scans, data.frames, data.poses, strict=True):
+        result = mapper.process(scan, frame, pose)
+        writer.commit(ScanOutcome(scan, pose, frame, result))
+        results.append(result)
+    far = []
+    # An empty scan where the robot drove on to (same times: nothing else changes).
+    empty = dataclasses.replace(data.scans[-1], points=np.zeros(0, POINT_DTYPE))
+    pose = dataclasses.replace(data.poses[-1], x=data.poses[-1].x + FAR_M)
+    for _ in range(2):
+        result = mapper.process(empty, None, pose)
+        writer.commit(ScanOutcome(empty, pose, None, result))
+        far.append(result)
+    writer.export()
+    writer.close()
+    return mapper, writer, results, far
+
+
+@pytest.mark.parametrize("method", ["paper", "robust"])
+def test_trees_out_of_range_are_finalised_once_and_unchanged(method, tmp_path):
+    kept, _, kept_results, _ = survey(method, 0.0, tmp_path / "kept")
+    finalised, _, results, far = survey(method, 50.0, tmp_path / "finalised")
+    # While the robot is among the trees none is finalised, and every scan's outcome is
+    # the same as when all are kept.
+    assert all(r.retired == [] for r in results)
+    assert [repr(r.clusters) for r in results] == [repr(r.clusters) for r in kept_results]
+    # 100 m on, every tree goes at once, the first time only; none is kept in memory.
+    ids = [t.tree_id for t in kept.trees()]
+    assert len(ids) >= 4
+    assert far[0].retired == ids and far[1].retired == []
+    assert finalised.tracker.tracks == [] and not finalised._trees
+    # Their records are the ones the mapper that keeps every tree reports.
+    assert repr(finalised.trees()) == repr(kept.trees())
+    assert repr(finalised.trees({ids[0]})) == repr([kept.trees()[0]])
+
+
+def test_outputs_are_the_same_with_trees_finalised(tmp_path):
+    survey("paper", 0.0, tmp_path / "kept")
+    survey("paper", 50.0, tmp_path / "finalised")
+    for name in ("trees.csv", "trees.geojson", "rejected.geojson"):
+        kept = (tmp_path / "kept" / name).read_bytes()
+        assert (tmp_path / "finalised" / name).read_bytes() == kept, name
+    tables = []
+    for run in ("kept", "finalised"):
+        with sqlite3.connect(tmp_path / run / "traits.sqlite") as db:
+            tables.append(
+                (
+                    db.execute("SELECT * FROM trees ORDER BY tree_id").fetchall(),
+                    db.execute("SELECT * FROM observations ORDER BY rowid").fetchall(),
+                )
+            )
+    assert len(tables[0][0]) >= 4
+    assert repr(tables[1]) == repr(tables[0])
+
+
+def test_retire_m_must_keep_trees_in_view():
+    with pytest.raises(ConfigError, match="retire_m"):
+        MapperConfig(tracking=TrackingConfig(retire_m=20.0))  # the view reaches 27 m
+    with pytest.raises(ConfigError, match="retire_m"):
+        TrackingConfig(retire_m=-1.0)
+    assert MapperConfig(tracking=TrackingConfig(retire_m=0.0)).tracking.retire_m == 0.0
+
+
+def test_geojson_is_json_dumps_text_and_reused(tmp_path):
+    """trees.geojson's text is json.dump(indent=1)'s byte for byte, when records are
+    reused from the previous write too."""
+    from treetraits.pipeline.georef import RenderCache
+
+    _, writer, _, _ = survey("paper", 0.0, tmp_path / "run")
+    trees = writer.georeferenced()
+    assert len(trees) >= 4
+    cache = RenderCache()
+    for rows in ([], trees, trees[:2] + trees[3:], trees):
+        write_trees_geojson(tmp_path / "ours.geojson", rows, cache)
+        with open(tmp_path / "json.geojson", "w", encoding="utf-8") as f:
+            json.dump(
+                {"type": "FeatureCollection", "features": [_feature(t) for t in rows]}, f, indent=1
+            )
+            f.write("\n")
+        assert (tmp_path / "ours.geojson").read_bytes() == (tmp_path / "json.geojson").read_bytes()
