@@ -197,10 +197,13 @@ def test_scan_results_tell_what_happened_to_each_cluster():
         if c.outcome == "updated":
             assert c.p_max > 0.5 and c.entropy < 0.8
         assert c.hull_volume > 0 and c.num_points >= 10
-    # About a third of the clusters fail the paper's gate (a 7 % change in the count of
-    # points is enough) and start a tree that the merge folds back at once (docs).
+    # Many tree clusters fail the paper's gate (a 7 % change in the count of points is
+    # enough) and start a tree that the merge folds back at once (docs): measured 410
+    # merged against 560 updated since the understorey is cut off the crowns (a third
+    # before), and the understorey's own pieces (low) are merged into their tree.
     outcomes = [c.outcome for r in results for c in r.clusters]
-    assert outcomes.count("updated") > 1.5 * outcomes.count("merged")
+    crowns = [c.outcome for r in results for c in r.clusters if c.cluster.verdict == "tree"]
+    assert crowns.count("updated") > 1.2 * crowns.count("merged")
     assert outcomes.count("created") < 20
     known = {t.tree_id for t in mapped("paper")[0].trees()}
     ids = {c.tree_id for r in results for c in r.clusters if c.outcome != "duplicate"}
@@ -374,6 +377,10 @@ def test_scans_taken_while_turning_fast_add_nothing_to_the_outline():
         steady.process(scan, None, pose)
         swung = dataclasses.replace(pose, yaw=pose.yaw + (0.05 if k % 2 else -0.05))
         turning.process(scan, None, swung)
-    assert len(steady.trees()) >= 2 and len(turning.trees()) == len(steady.trees())
-    assert all(math.isfinite(t.width_m) for t in steady.trees())
-    assert all(math.isnan(t.width_m) for t in turning.trees())
+    # Trees, not the understorey's objects: with headings swinging, a low piece under a
+    # crown can land a scan away from its tree and stand alone (it is listed, `low`).
+    steady_trees = [t for t in steady.trees() if t.kind == "tree"]
+    turning_trees = [t for t in turning.trees() if t.kind == "tree"]
+    assert len(steady_trees) >= 2 and len(turning_trees) == len(steady_trees)
+    assert all(math.isfinite(t.width_m) for t in steady_trees)
+    assert all(math.isnan(t.width_m) for t in turning_trees)
