@@ -341,10 +341,15 @@ def _feature_text(tree: Tree) -> str:
     return "\n".join("  " + line for line in text.split("\n"))
 
 
+def point_geometry(lat: float | None, lon: float | None) -> dict[str, Any] | None:
+    """A GeoJSON Point in WGS84 (8 decimals: ~1 mm), or None (null geometry) without one."""
+    if lat is None or lon is None:
+        return None
+    return {"type": "Point", "coordinates": [round(lon, 8), round(lat, 8)]}
+
+
 def _feature(tree: Tree) -> dict[str, Any]:
-    geometry = None
-    if tree.lat is not None and tree.lon is not None:
-        geometry = {"type": "Point", "coordinates": [round(tree.lon, 8), round(tree.lat, 8)]}
+    geometry = point_geometry(tree.lat, tree.lon)
     properties = {
         "tree_id": tree.tree_id,
         "field_id": tree.field_id,

@@ -9,7 +9,7 @@ import os
 from collections.abc import Sequence
 from typing import Any, TextIO
 
-from treetraits.pipeline.georef import _write_atomically, iso_utc
+from treetraits.pipeline.georef import _write_atomically, iso_utc, point_geometry
 from treetraits.pipeline.linking import growth_per_30_days
 from treetraits.service.season import SeasonTree
 
@@ -96,9 +96,7 @@ def write_season_geojson(path: str | os.PathLike, trees: Sequence[SeasonTree]) -
     latitude), its growth as properties."""
 
     def feature(t: SeasonTree) -> dict:
-        geometry = None
-        if t.lat is not None and t.lon is not None:
-            geometry = {"type": "Point", "coordinates": [round(t.lon, 8), round(t.lat, 8)]}
+        geometry = point_geometry(t.lat, t.lon)
         properties = {
             "tree_id": t.tree_id,
             "block": t.block,
