@@ -7,13 +7,15 @@ the ring gaps of a far crown): without this cut the post widens the tree by a me
 and the person joins two trees into one cluster that no trunk cut can part (the legs
 are a trunk-sized blob between the two trunks).
 
-A stem is a smooth vertical column: a blob of returns in the trunk band (as a trunk
-is), over which returns stand without a gap, within a person's half-width of its axis,
-up to at least `min_stem_height_m`, and are smooth along the rings (`classify.roughness`:
-clothes, wood, concrete and steel are smooth, foliage is not). A tree's trunk passes
-the first test and fails the others: above a citrus trunk (0.35-0.6 m, where the skirt
-starts) the column holds either nothing (the crown's surface is farther out than a
-person's half-width) or foliage (a young tree's crown, its apex), which is rough.
+A stem is a smooth vertical column standing clear: a blob of returns in the trunk band
+(as a trunk is), over which returns stand without a gap, within a person's half-width
+of its axis, up to at least `min_stem_height_m` (or the top of the LiDAR's view), are
+smooth along the rings (`classify.roughness`: clothes, wood, concrete and steel are
+smooth, foliage is not) and have little around them. A tree's trunk passes the first
+test and fails the others: above a citrus trunk (0.35-0.6 m, where the skirt starts)
+the column holds either nothing (the crown's surface is farther out than a person's
+half-width) or foliage (a young tree's crown, its apex), which is rough, and the crown
+is around it.
 """
 
 from __future__ import annotations
