@@ -199,7 +199,9 @@ def test_a_run_report_and_a_bad_source(batch, tmp_path, capsys):
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (`make test` installs it where apt has it)")
+@pytest.mark.skipif(
+    CHROMIUM is None, reason="chromium not installed (`make test` installs it where apt has it)"
+)
 def test_chromium_renders_the_report(batch, tmp_path):
     page = tmp_path / "season.html"
     assert main(["report", str(batch[0]), "--out", str(page)]) == 0
