@@ -9,6 +9,10 @@ takes the lock only): docs/cli.md, "Output directories".
   staging directory beside them (same file system, so moving is a rename) and moved into
   place when the run succeeds; a failing or interrupted run leaves the earlier outputs as
   they were.
+- A run that stops early but has outputs worth keeping (an interrupted replay: what was
+  mapped so far, marked interrupted) calls `keep_aside(name)`: its outputs go into place
+  when the directory holds no earlier run's, else into `directory/name/` beside the
+  earlier run, which stays as it was (a partial run never replaces a complete one).
 - An earlier run's outputs are replaced only with `force` (else `OutputExistsError`);
   replacing removes every owned file of the earlier run that the new run did not write (an
   export's stale .pcd files). Files the command does not own (the input recording beside
@@ -125,6 +129,8 @@ class OutputDir:
         self.what = what
         self.target = self.directory if target is None else Path(target)  # for messages
         self.staging: Path | None = None
+        self._aside: str | None = None  # `keep_aside`'s name
+        self.placed: Path | None = None  # where the outputs went, once they were moved
         self._lock: contextlib.AbstractContextManager | None = None
         if self.directory.exists() and not self.directory.is_dir():
             raise OutputDirError(
@@ -208,7 +214,37 @@ class OutputDir:
                 shutil.rmtree(self.staging, ignore_errors=True)
             self._release()
 
+    def keep_aside(self, name: str) -> None:
+        """On a clean exit, put the outputs into place only if no earlier run's are there;
+        else move the staging directory to `directory/name` (a rename: same directory) and
+        leave the earlier run untouched. For a run that stopped early (`replay` on SIGINT
+        or SIGTERM). `name` is not an owned pattern, so later runs never touch it."""
+        self._aside = name
+
     def _commit(self) -> None:
+        assert self.staging is not None
+        if self._aside is not None and self.existing():
+            aside = self.directory / self._aside
+            n = 1
+            while aside.exists():  # two interrupted runs in one second
+                n += 1
+                aside = self.directory / f"{self._aside}-{n}"
+            try:
+                # mkdtemp made it private (0700); as the directory would be made.
+                umask = os.umask(0)
+                os.umask(umask)
+                os.chmod(self.staging, 0o777 & ~umask)
+                os.rename(self.staging, aside)
+            except OSError as exc:
+                raise FileAccessError(f"{aside}: outputs not moved aside ({_text(exc)})") from exc
+            self.staging = None  # moved: nothing to remove
+            _fsync_directory(self.directory)
+            self.placed = aside
+            return
+        self._replace()
+        self.placed = self.directory
+
+    def _replace(self) -> None:
         """Remove the earlier run's owned files the new run did not write, then rename the
         new ones into place, and make the renames durable."""
         assert self.staging is not None

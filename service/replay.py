@@ -298,10 +298,16 @@ def run_replay(
     options: ReplayOptions,
     progress: Callable[[int], None] | None = None,
     inputs: ReplayInputs | None = None,
+    stop: Callable[[], str | None] | None = None,
 ) -> ReplayReport:
     """Process `path` into `out_dir` (traits.sqlite, trees.geojson, trees.csv), replacing
     an earlier replay's store there. `inputs`: from `open_replay`, when the caller opened
-    them before preparing `out_dir` (the CLI, which builds the outputs aside)."""
+    them before preparing `out_dir` (the CLI, which builds the outputs aside).
+
+    `stop`: asked before each message; a reason ("SIGINT") ends the reading there, and the
+    replay finishes as the service does on a signal: the scans read so far are completed,
+    committed and exported, and the store's `end` fact says `interrupted (SIGINT)`
+    (`complete` when the whole input was read)."""
     cfg = options.config
     inputs = inputs or open_replay(path, options)
     source, calibration, field_map = inputs.source, inputs.calibration, inputs.field_map
@@ -324,8 +330,11 @@ def run_replay(
     }
     writer = RunWriter(out_dir, processor, field_map, cfg.output, facts=summary)
     next_export = None
+    stopped_by = None
     try:
         for topic, data, log_time, publish_time in source.messages:
+            if stop is not None and (stopped_by := stop()):
+                break
             outcomes = processor.feed(topic, data, log_time, publish_time)
             for outcome in outcomes:
                 writer.commit(outcome)
@@ -358,6 +367,10 @@ def run_replay(
             },
             frames=processor.stats.frames,
             **source.integrity(),
+            # As the service says how its run ended (docs/service.md): the exports were
+            # rewritten from the store after the last scan, so they hold what it holds.
+            end=f"interrupted ({stopped_by})" if stopped_by else "complete",
+            exports="level with the store",
         )
         writer.set_facts(summary)
         # Not in the summary (it is printed): the path for `treetraits report`'s map.

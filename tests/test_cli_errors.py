@@ -4,7 +4,11 @@ exit code, never a traceback; an earlier run's outputs stay as they were."""
 
 from __future__ import annotations
 
+import contextlib
+import csv
+import json
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -15,7 +19,7 @@ import pytest
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
-from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_USAGE
+from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_TERMINATED, EXIT_USAGE
 from treetraits.service.config import ServiceConfig
 from treetraits.service.outputs import OutputError, RunWriter
 from treetraits.service.replay import make_processor
@@ -108,24 +112,86 @@ def test_bad_inputs_are_one_line_naming_the_file_exit_2(survey, tmp_path, capsys
     assert not (tmp_path / "out").exists()  # refused before the output was made
 
 
-def test_ctrl_c_in_a_replay_is_one_line_exit_130_and_keeps_the_earlier_run(survey, tmp_path):
-    out = tmp_path / "out"
-    assert main(["replay", str(survey.recording), "--out", str(out)]) == 0
-    before = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
-    argv = ["replay", str(survey.recording), "--out", str(out), "--force"]
-    replay = _start(argv)
-    # Interrupted while it writes: once its staging directory is there.
+def _signal_mid_replay(replay: subprocess.Popen, out: Path, signum: int) -> None:
+    """Send `signum` once the replay has committed trees to its staged store (it is then
+    inside its loop, with scans still to read: the survey takes seconds to replay)."""
     deadline = time.monotonic() + 120
-    while not list(out.glob(".treetraits.staging-*")) and replay.poll() is None:
+    while replay.poll() is None:
         assert time.monotonic() < deadline
+        stores = list(out.glob(".treetraits.staging-*/traits.sqlite"))
+        if stores and _stored_trees(stores[0]):
+            break
         time.sleep(0.02)
-    replay.send_signal(signal.SIGINT)
+    replay.send_signal(signum)
+
+
+def _stored_trees(store: Path) -> int:
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{store}?mode=ro", uri=True)) as db:
+            return db.execute("SELECT COUNT(*) FROM trees WHERE status = 'found'").fetchone()[0]
+    except sqlite3.Error:  # being created
+        return 0
+
+
+def _facts(store: Path) -> dict[str, str]:
+    with contextlib.closing(sqlite3.connect(store)) as db:
+        assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        return dict(db.execute("SELECT key, value FROM run"))
+
+
+def assert_csv_is_the_store(run: Path) -> None:
+    """Every trees.csv row is a row of the store's trees table and the other way round:
+    the same ids, statuses and observation counts, the traits to the CSV's decimals."""
+    with contextlib.closing(sqlite3.connect(run / "traits.sqlite")) as db:
+        stored = db.execute(
+            "SELECT tree_id, status, observations, width_m, height_m, ndvi FROM trees"
+        ).fetchall()
+    with open(run / "trees.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    key = {"found": lambda r: r["tree_id"], "missing": lambda r: f"missing:{r['field_id']}"}
+    in_csv = {key[r["status"]](r): r for r in rows}
+    assert len(in_csv) == len(rows) > 0
+    assert sorted(in_csv) == sorted(t[0] for t in stored)
+    for tree_id, status, observations, width, height, ndvi in stored:
+        row = in_csv[tree_id]
+        assert row["status"] == status and int(row["observations"]) == observations
+        for name, value, decimals in (
+            ("width_m", width, 3),
+            ("height_m", height, 3),
+            ("ndvi", ndvi, 4),
+        ):
+            if value is None:
+                assert row[name] == "", (tree_id, name)
+            else:
+                assert abs(float(row[name]) - value) <= 0.51 * 10**-decimals, (tree_id, name)
+
+
+def test_ctrl_c_in_a_replay_keeps_what_was_mapped_marked_interrupted(survey, tmp_path):
+    """Issue 14, case 8: SIGINT mid-replay into a new output. The scans read so far are
+    finished, committed and exported; the store says the run was interrupted, trees.csv
+    holds the store's trees, the exit status is 130 and one line says where it all is."""
+    complete = tmp_path / "complete"
+    assert main(["replay", str(survey.recording), "--out", str(complete)]) == 0
+    out = tmp_path / "out"
+    replay = _start(["replay", str(survey.recording), "--out", str(out)])
+    _signal_mid_replay(replay, out, signal.SIGINT)
     _, err = replay.communicate(timeout=120)
-    assert replay.returncode in INTERRUPTED_STATUS, err
-    assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGINT)"]
-    after = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
-    assert after == before
+    assert replay.returncode == EXIT_INTERRUPTED, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith("treetraits: error: interrupted (SIGINT): the outputs of the ")
+    assert f"are in {out}/, marked end = interrupted (SIGINT)" in line
+    facts = _facts(out / "traits.sqlite")
+    assert facts["end"] == "interrupted (SIGINT)"
+    assert facts["exports"] == "level with the store"
+    assert 0 < int(facts["scans"]) < int(_facts(complete / "traits.sqlite")["scans"])
+    assert f"the {facts['scans']} scans replayed so far" in line
+    assert _facts(complete / "traits.sqlite")["end"] == "complete"
+    assert_csv_is_the_store(out)
+    features = json.loads((out / "trees.geojson").read_text())["features"]
+    assert len(features) == len((out / "trees.csv").read_text().splitlines()) - 1
     assert not list(out.glob(".treetraits.staging-*"))
+    # What is there is a run's outputs: a replay without --force is refused (exit 4).
+    assert main(["replay", str(survey.recording), "--out", str(out)]) == 4
 
 
 def test_a_store_that_cannot_be_created_is_one_error_naming_it(tmp_path):
@@ -164,20 +230,35 @@ def test_ctrl_c_during_start_up_is_one_line_exit_130(survey, tmp_path, after_s):
     assert not list((tmp_path / "out").glob("[!.]*"))
 
 
-def test_sigterm_in_a_replay_is_one_line_exit_143_and_keeps_the_earlier_run(survey, tmp_path):
-    """`kill` (a CI runner's timeout, a supervisor) stops a replay as Ctrl-C does: what it
-    built is discarded, nothing is left half-written, the earlier run stays whole."""
+def test_sigterm_in_a_forced_replay_keeps_the_earlier_run_and_the_interrupted_one_aside(
+    survey, tmp_path
+):
+    """`kill` (a CI runner's timeout, a supervisor) mid-replay with --force over an earlier
+    run: a partial run never replaces a complete one. The earlier outputs stay byte for
+    byte; the interrupted run's are kept in OUT/interrupted-<UTC>/, marked, exit 143."""
     out = tmp_path / "out"
     assert main(["replay", str(survey.recording), "--out", str(out)]) == 0
     before = {p.name: p.read_bytes() for p in out.glob("[!.]*")}
     replay = _start(["replay", str(survey.recording), "--out", str(out), "--force"])
-    deadline = time.monotonic() + 120
-    while not list(out.glob(".treetraits.staging-*")) and replay.poll() is None:
-        assert time.monotonic() < deadline
-        time.sleep(0.02)
-    replay.send_signal(signal.SIGTERM)
+    _signal_mid_replay(replay, out, signal.SIGTERM)
     _, err = replay.communicate(timeout=120)
-    assert replay.returncode == 143, err  # 128 + SIGTERM, docs/cli.md
-    assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGTERM)"]
-    assert {p.name: p.read_bytes() for p in out.glob("[!.]*")} == before
+    assert replay.returncode == EXIT_TERMINATED, err  # 128 + SIGTERM, docs/cli.md
+    (aside,) = out.glob("interrupted-*")
+    (line,) = err.strip().splitlines()
+    assert line.startswith("treetraits: error: interrupted (SIGTERM): the outputs of the ")
+    assert f"kept aside in {aside}/ (the earlier run's outputs stay)" in line
+    assert {p.name: p.read_bytes() for p in out.glob("[!.]*") if p.is_file()} == before
+    assert sorted(p.name for p in aside.iterdir()) == [
+        "rejected.geojson",
+        "traits.sqlite",
+        "trees.csv",
+        "trees.geojson",
+    ]
+    facts = _facts(aside / "traits.sqlite")
+    assert facts["end"] == "interrupted (SIGTERM)"
+    assert 0 < int(facts["scans"]) < int(_facts(out / "traits.sqlite")["scans"])
+    assert_csv_is_the_store(aside)
     assert not list(out.glob(".treetraits.staging-*"))
+    # The next forced replay replaces the earlier run and leaves the interrupted one.
+    assert main(["replay", str(survey.recording), "--out", str(out), "--force"]) == 0
+    assert list(out.glob("interrupted-*")) == [aside]

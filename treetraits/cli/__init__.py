@@ -118,8 +118,9 @@ INTERRUPTED = "interrupted (SIGINT)"
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM (`kill`, a CI runner's timeout, systemd): stopped as Ctrl-C stops a command
-    (a replay discards what it built, the earlier outputs stay), with its own exit code.
-    `run` and `record` install their own handler: a clean stop with a final export."""
+    (`sim` discards what it built, the earlier outputs stay), with its own exit code.
+    `run`, `record` and `replay` install their own handler: a clean stop with a final
+    export (`replay`: cli/stopping.py)."""
 
 
 def _watch_interrupt(event: threading.Event) -> dict:

@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from treetraits.cli.stopping import EXIT_BY_SIGNAL, StopOnSignal
 from treetraits.errors import EXIT_DATA_LOSS, ConfigError
 from treetraits.service.outdir import OutputDir
 
@@ -23,7 +24,9 @@ def register(commands: argparse._SubParsersAction) -> None:
             "Decode, localise, fuse, detect, track and estimate every tree of a recording "
             "(or of a LiDAR capture with --nmea), faster than real time, and write OUT/"
             "traits.sqlite, OUT/trees.geojson and OUT/trees.csv. Deterministic: the same "
-            "input and options give the same outputs."
+            "input and options give the same outputs. Ctrl-C (or SIGTERM) stops it with the "
+            "outputs of what it read so far, marked interrupted (exit 130/143); over an "
+            "earlier run (--force) they go to OUT/interrupted-<UTC time>/ instead."
         ),
     )
     replay.add_argument("input", type=Path, help="a recording (.mcap) or a LiDAR capture")
@@ -133,11 +136,17 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         # Progress in bytes of sensor data (a recording is compressed: no total to show).
+        # SIGINT/SIGTERM end the reading; what was mapped so far is finished, exported
+        # and kept, marked interrupted (a second signal discards it).
         with (
+            StopOnSignal() as stop,
             output as staging,
             tqdm(unit="B", unit_scale=True, desc="replay", leave=False, disable=None) as bar,
         ):
-            report = run_replay(args.input, staging, options, bar.update, inputs)
+            report = run_replay(args.input, staging, options, bar.update, inputs, stop)
+            if report.summary["end"] != "complete":
+                # Never in place of an earlier complete run (--force): beside it.
+                output.keep_aside(f"interrupted-{_utc_stamp()}")
     finally:
         inputs.source.close()
     elapsed = time.perf_counter() - start
@@ -146,6 +155,9 @@ def run(args: argparse.Namespace) -> int:
     # A damaged recording is replayed as far as it reads, and says so: its outputs are
     # kept, the exit status tells that data is missing from them.
     status = EXIT_DATA_LOSS if summary["data_loss"] and not args.allow_damaged else 0
+    if stop.reason:
+        status = EXIT_BY_SIGNAL[stop.reason]
+        print(f"treetraits: error: {_interrupted(stop.reason, summary, output)}", file=sys.stderr)
     if summary["data_loss"]:
         print(f"treetraits: warning: {args.input}: {format_loss(summary)}", file=sys.stderr)
     if args.json:
@@ -161,6 +173,27 @@ def run(args: argparse.Namespace) -> int:
     if summary["data_loss"]:
         print(f"DATA LOSS: {format_loss(summary)}")
     return status
+
+
+def _utc_stamp() -> str:
+    from datetime import datetime, timezone
+
+    return datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+
+
+def _interrupted(reason: str, summary: dict, output: OutputDir) -> str:
+    """The one line an interrupted replay ends with: what it kept, and where."""
+    if summary["end"] == "complete":  # the signal came after the last message
+        return f"interrupted ({reason}) once the replay was complete; outputs in {output.placed}/"
+    where = (
+        f"kept aside in {output.placed}/ (the earlier run's outputs stay)"
+        if output.placed != output.directory
+        else f"in {output.placed}/"
+    )
+    return (
+        f"interrupted ({reason}): the outputs of the {summary['scans']} scans replayed so far "
+        f"are {where}, marked end = interrupted ({reason})"
+    )
 
 
 def format_loss(summary: dict) -> str:
