@@ -9,13 +9,14 @@ not mix); a recording's replays are queued as soon as it exists, longest cases f
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -170,6 +171,33 @@ def _expected_cost(case: Case) -> float:
     return lanes * s.goal * (1.0 + 0.5 * (s.wind.speed_mps > 0))
 
 
+WORKER_STOP_S = 3.0  # a worker that ignores SIGTERM this long is killed
+
+
+@contextlib.contextmanager
+def _stopped_on_exception(pool: ProcessPoolExecutor) -> Iterator[ProcessPoolExecutor]:
+    """The pool, shut down as usual at the end; on an exception (SIGTERM, Ctrl-C, a task
+    that failed) its workers are terminated at once instead of being waited for, with
+    their queued tasks cancelled: a simulation runs for minutes, and `kill` must stop
+    the evaluation within seconds."""
+    try:
+        yield pool
+    except BaseException:
+        workers = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for worker in workers:
+            with contextlib.suppress(OSError):
+                worker.terminate()
+        deadline = time.monotonic() + WORKER_STOP_S
+        for worker in workers:
+            worker.join(max(0.0, deadline - time.monotonic()))
+            if worker.is_alive():
+                worker.kill()
+                worker.join()
+        raise
+    pool.shutdown(wait=True)
+
+
 def run_evaluation(
     cases: Sequence[Case],
     seeds: Sequence[int],
@@ -197,7 +225,9 @@ def run_evaluation(
     total = len(order) * (1 + len(methods))
     with (
         tqdm(total=total, desc="eval", unit="job", file=sys.stderr, disable=not progress) as bar,
-        ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool,
+        _stopped_on_exception(
+            ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"))
+        ) as pool,
     ):
         # Own queue, at most `jobs` tasks in the pool: a recording's replays go before
         # the next simulation, so results (and failures) come early.
