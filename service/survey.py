@@ -90,6 +90,7 @@ class SurveyStats:
     telemetry_malformed: int = 0
     motion_malformed: int = 0  # format 1.1 odometry or IMU messages of the wrong size
     points_malformed: int = 0  # format 1.1 points messages that do not decode
+    nmea_malformed: int = 0  # NMEA sentences whose fields do not read: skipped
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -144,7 +145,11 @@ class SurveyProcessor:
             self.stats.frames += 1
         elif topic == rec.GNSS_NMEA:
             for sentence in self._splitter.push(data, log_time):
-                record = decode(sentence)
+                try:
+                    record = decode(sentence)
+                except ParseError:  # a good checksum over fields that do not read
+                    self.stats.nmea_malformed += 1
+                    continue
                 if record is not None and (fix := self._epochs.push(record)) is not None:
                     self._add_fix(fix)
         elif topic == rec.WHEELS_JACKAL:
