@@ -136,6 +136,9 @@ class Service:
         self._stopped_by: str | None = None  # "SIGTERM", "SIGINT": the signal that stopped it
         self._export_failed = False  # the last export did not go through
         self._unprocessed = 0  # queued items the shutdown's drain limit left
+        # A video file played as the camera starts with the first LiDAR packet: a survey
+        # played into the service then gets frames where its own were (PacedVideo).
+        self._video_playing = False
 
     # --- start ---------------------------------------------------------------------------
 
@@ -208,6 +211,14 @@ class Service:
             raise
         for worker in self.workers:
             worker.start()
+        if not self.cfg.lidar.enabled:  # no packet will come to start the video
+            self._play_videos()
+
+    def _play_videos(self) -> None:
+        self._video_playing = True
+        for worker in self.workers:
+            if isinstance(worker, CameraWorker):
+                worker.play_video()
 
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
         from treetraits.service.replay import make_processor
@@ -294,6 +305,8 @@ class Service:
 
     def _handle(self, m: Message) -> None:
         self.counters.messages += 1
+        if not self._video_playing and m.topic == rec.LIDAR_PACKETS:
+            self._play_videos()
         if self.recorder is not None:
             self._record(m)
         if self.processor is not None:

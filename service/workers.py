@@ -379,7 +379,12 @@ class BridgeWorker(Worker):
 
 class PacedVideo:
     """A video file played as a camera: frames at the file's frame rate, each stamped with
-    the host clock when it is handed over (t_host = t_capture). For tests and demos."""
+    the host clock when it is handed over (t_host) and when it fell due (t_capture: the
+    same unless the reader fell behind). For tests and demos, where
+    a survey is played into the service: the video starts with `play()`, which the service
+    calls at its first LiDAR packet, so frame k comes k frame periods after the survey's
+    first scan began, as the survey's own frames did (within a period), not k periods
+    after the service started."""
 
     is_live = True
 
@@ -390,9 +395,20 @@ class PacedVideo:
         self._frames = iter(self._source)
         self._next = time.monotonic()
         self._wake = threading.Event()
+        self._playing = threading.Event()
         self.ended = False
 
-    def read(self, timeout: float) -> tuple[bytes, int] | None:
+    def play(self) -> None:
+        """Start handing frames over (now: the first frame at once). Idempotent."""
+        if not self._playing.is_set():
+            self._next = time.monotonic()
+            self._playing.set()
+
+    def read(self, timeout: float) -> tuple[bytes, int, int] | None:
+        """(JPEG, t_host, t_capture): handed over at t_host, "captured" when it was due."""
+        if not self._playing.is_set():
+            self._playing.wait(timeout)
+            return None
         if self.ended:
             self._wake.wait(timeout)
             return None
@@ -407,9 +423,12 @@ class PacedVideo:
             self.ended = True
             log.warning("camera: end of the video file %s: no more frames", self.uri)
             return None
-        # Keep the file's rate, but never try to catch up a backlog after a stall.
-        self._next = max(self._next + self._period, time.monotonic() - self._period)
-        return frame.jpeg, time.time_ns()
+        # Frame k is captured k periods after the start, as a camera's would be: a reader
+        # that fell behind (decoding, a loaded machine) hands the backlog over at once,
+        # each stamped when it was due, so the frames stay on the survey's timeline.
+        due, self._next = self._next, self._next + self._period
+        now = time.time_ns()
+        return frame.jpeg, now, now - max(0, round((time.monotonic() - due) * 1e9))
 
     def close(self) -> None:
         self._wake.set()
@@ -431,21 +450,32 @@ class CameraWorker(Worker):
     def __init__(self, cfg: CameraConfig, queue: BoundedQueue):
         super().__init__(queue, cfg.silence_s)
         self.cfg = cfg
+        self._play = False  # play_video was called
 
     def _open_source(self):
         if is_video_file(self.cfg.device):
-            return PacedVideo(Path(self.cfg.device))
+            video = PacedVideo(Path(self.cfg.device))
+            if self._play:  # reopened after the survey began
+                video.play()
+            return video
         from treetraits.drivers.camera.live import UvcCamera
 
         return UvcCamera(self.cfg.device, CameraSettings(wait_for_device=True))
+
+    def play_video(self) -> None:
+        """Start a video file played as the camera (`PacedVideo.play`); nothing for a
+        real camera."""
+        self._play = True
+        if isinstance(self.source, PacedVideo):
+            self.source.play()
 
     def _receive(self, source) -> Message | None:
         if isinstance(source, PacedVideo):
             got = source.read(READ_TIMEOUT_S)
             if got is None:
                 return None
-            jpeg, t_host = got
-            return Message(rec.CAMERA_JPEG, jpeg, t_host, t_host)
+            jpeg, t_host, t_capture = got
+            return Message(rec.CAMERA_JPEG, jpeg, t_host, t_capture)
         frame = source.next_frame(timeout=READ_TIMEOUT_S)
         if frame is None:
             return None

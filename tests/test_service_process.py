@@ -362,9 +362,11 @@ def test_live_and_replay_write_the_same_trees(survey, tmp_path):
     over UDP, GNSS and wheels over ptys, the camera from a video), then replayed. The
     replay of what the service recorded writes the service's trees (same ids, traits
     within 1 %: they come out equal). The replay of the twin recording itself finds the
-    same field-map trees; its traits are not held to 1 % here: the live run sees fewer
-    scans (86-87 against 98-99 observations) and its camera is a video read from the
-    service's start, not the twin's exposures (measured gaps in docs/service.md)."""
+    same field-map trees, with NDVI within 10 %: the camera video starts with the first
+    LiDAR packet (it used to start with the service, seconds before the survey: NDVI up
+    to 26 % apart); measured since, widths within 3.2 %, heights 1 %, NDVI 4.9 %. Not
+    1 %: the live run's frames and serial data are stamped when its threads read them,
+    late on a loaded machine (docs/service.md, "Live against replay")."""
     player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
     config = write_config(tmp_path, survey, player)
     service = Service(tmp_path, config, "--record")
@@ -400,6 +402,8 @@ def test_live_and_replay_write_the_same_trees(survey, tmp_path):
         replayed = _trees_by_field_id(out / "traits.sqlite")
         assert set(replayed) == set(live), name
         if name != "of-the-live-run":
+            for field_id, (_, _, _, ndvi) in replayed.items():
+                assert _within(ndvi, live[field_id][3], 0.10), (field_id, ndvi, live[field_id])
             continue
         # The very messages the service processed, in its order: the same trees.
         for field_id, (tree_id, width, height, ndvi) in replayed.items():
