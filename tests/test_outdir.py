@@ -218,3 +218,28 @@ def test_a_run_that_fails_midway_discards_its_staged_outputs(tmp_path):
         raise RuntimeError("the run broke")
     assert snapshot(out) == {"a.txt": b"first"}
     assert sorted(p.name for p in out.iterdir()) == [".treetraits.lock", "a.txt"]
+
+
+def test_a_run_kept_aside_goes_in_place_only_where_no_earlier_run_is(tmp_path):
+    """`keep_aside` (an interrupted replay): into place in an empty output; beside an
+    earlier run, in its own directory (readable as a directory made by the run would be),
+    the earlier run untouched; a second one in the same second gets `-2`."""
+    out = tmp_path / "out"
+    with OutputDir(out, ("a.txt",)) as staging:
+        (staging / "a.txt").write_text("partial")
+    assert snapshot(out) == {"a.txt": b"partial"}
+    for expected in ("interrupted-x", "interrupted-x-2"):
+        output = OutputDir(out, ("a.txt",), force=True)
+        with output as staging:
+            (staging / "a.txt").write_text(expected)
+            output.keep_aside("interrupted-x")
+        assert output.placed == out / expected
+        assert (out / expected / "a.txt").read_text() == expected
+        assert (out / expected).stat().st_mode & 0o755 == 0o755
+        assert snapshot(out) == {"a.txt": b"partial"}
+    output = OutputDir(out / "empty", ("a.txt",))
+    with output as staging:
+        (staging / "a.txt").write_text("alone")
+        output.keep_aside("interrupted-y")
+    assert output.placed == out / "empty" and (out / "empty" / "a.txt").read_text() == "alone"
+    assert not list(out.glob(".treetraits.staging-*"))
