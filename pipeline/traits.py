@@ -161,6 +161,9 @@ class RobustTraits:
         self._pending_count = 0
         self._ground: list[float] = []
         self._cache: tuple[float, float, np.ndarray] | None = None
+        # The centre alone, asked every scan (the outline merge): min and max of the counted
+        # cells, without the caliper and the ground's median that width and height need.
+        self._centre: np.ndarray | None = None
 
     def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
         """One cluster of this tree: its returns in the world frame (already cut to this
@@ -175,7 +178,7 @@ class RobustTraits:
             self._ground.append(float(ground_world))
             if len(self._ground) > 400:  # a bounded, recent sample of the ground
                 self._ground = self._ground[-200:]
-        self._cache = None
+        self._cache = self._centre = None
         # Fold pending cells in once they outnumber the grid: amortised O(n log n).
         if self._pending_count > max(len(self._keys), 5000):
             self._consolidate()
@@ -189,7 +192,7 @@ class RobustTraits:
         self._pending.append((np.repeat(keys, hits), np.repeat(points, hits, axis=0)))
         self._pending_count += int(hits.sum())
         self._ground.extend(other._ground)
-        self._cache = None
+        self._cache = self._centre = None
         self._consolidate()
 
     def cells(self) -> tuple[np.ndarray, np.ndarray]:
@@ -215,10 +218,14 @@ class RobustTraits:
             keys = _voxel_keys(points, self.voxel)
         self._keys, self._hits, self._points = keys, hits, points
 
+    def _seen(self) -> np.ndarray:
+        """The cells hit in at least `min_hits` scans (their first returns)."""
+        points, hits = self.cells()
+        return points[hits >= self.config.min_hits]
+
     def _measure(self) -> tuple[float, float, np.ndarray]:
         if self._cache is None:
-            points, hits = self.cells()
-            seen = points[hits >= self.config.min_hits]
+            seen = self._seen()
             if len(seen) < 2:
                 self._cache = (float("nan"), float("nan"), np.full(2, np.nan))
             else:
@@ -237,7 +244,17 @@ class RobustTraits:
         return self._measure()[1]
 
     def centre(self) -> np.ndarray | None:
-        centre = self._measure()[2]
+        if self._cache is not None:
+            centre = self._cache[2]
+        elif self._centre is not None:
+            centre = self._centre
+        else:
+            seen = self._seen()
+            # caliper's centre, computed the same way on the same points
+            xy = seen[:, :2]
+            self._centre = centre = (
+                (xy.min(axis=0) + xy.max(axis=0)) / 2 if len(seen) >= 2 else np.full(2, np.nan)
+            )
         return centre if np.isfinite(centre).all() else None
 
 
