@@ -181,3 +181,21 @@ def test_sigterm_in_a_replay_is_one_line_exit_143_and_keeps_the_earlier_run(surv
     assert err.strip().splitlines() == ["treetraits: error: interrupted (SIGTERM)"]
     assert {p.name: p.read_bytes() for p in out.glob("[!.]*")} == before
     assert not list(out.glob(".treetraits.staging-*"))
+
+
+def test_a_sqlite_error_is_one_line_exit_6(monkeypatch, capsys):
+    """The boundary names sqlite3.Error without importing SQLite at every start: a command
+    that used SQLite and failed in it still ends in one line, exit 6."""
+    import argparse
+    import sqlite3
+
+    import treetraits.cli as cli
+
+    def fails(args):
+        sqlite3.connect(":memory:").execute("select * from no_such_table")
+
+    parser = argparse.ArgumentParser()
+    parser.set_defaults(run=fails)
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    assert main([]) == EXIT_IO
+    assert "SQLite: no such table: no_such_table" in one_line(capsys)
