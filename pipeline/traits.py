@@ -203,19 +203,29 @@ class RobustTraits:
     def _consolidate(self) -> None:
         if not self._pending:
             return
-        keys = np.concatenate([self._keys, *(k for k, _ in self._pending)])
-        points = np.vstack([self._points, *(p for _, p in self._pending)])
-        hits = np.concatenate([self._hits, np.ones(self._pending_count, dtype=np.int64)])
+        # The pending cells among themselves first (a scan's few hundred), then merged into
+        # the sorted grid: a cell already there keeps its first return and adds the hits,
+        # a new one is inserted in key order. The same cells, returns and hits as one
+        # np.unique over the grid and the pending cells together, without sorting the
+        # whole grid again at every scan (the outline's centre is asked every scan).
+        keys, points, hits = _unique_cells(
+            np.concatenate([k for k, _ in self._pending]),
+            np.vstack([p for _, p in self._pending]),
+            np.ones(self._pending_count, dtype=np.int64),
+        )
         self._pending, self._pending_count = [], 0
-        while True:
-            # First return per cell in arrival order (deterministic); hits summed.
-            unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-            hits = np.bincount(inverse.ravel(), weights=hits).astype(np.int64)
-            keys, points = unique, points[first]
-            if len(keys) <= self.config.max_points:
-                break
+        at = np.searchsorted(self._keys, keys)
+        known = at < len(self._keys)
+        known[known] = self._keys[at[known]] == keys[known]
+        grid_hits = self._hits.copy()
+        grid_hits[at[known]] += hits[known]
+        new = ~known
+        keys = np.insert(self._keys, at[new], keys[new])
+        points = np.insert(self._points, at[new], points[new], axis=0)
+        hits = np.insert(grid_hits, at[new], hits[new])
+        while len(keys) > self.config.max_points:
             self.voxel *= 2.0
-            keys = _voxel_keys(points, self.voxel)
+            keys, points, hits = _unique_cells(_voxel_keys(points, self.voxel), points, hits)
         self._keys, self._hits, self._points = keys, hits, points
 
     def _seen(self) -> np.ndarray:
@@ -265,6 +275,14 @@ def caliper(xy: np.ndarray, directions: int) -> tuple[float, np.ndarray]:
     projected = xy @ np.stack([np.cos(angles), np.sin(angles)])
     extents = projected.max(axis=0) - projected.min(axis=0)
     return float(extents.max()), (xy.min(axis=0) + xy.max(axis=0)) / 2
+
+
+def _unique_cells(keys: np.ndarray, points: np.ndarray, hits: np.ndarray):
+    """Cells in key order: each key's first point in arrival order (deterministic) and
+    its hits summed."""
+    unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    hits = np.bincount(inverse.ravel(), weights=hits).astype(np.int64)
+    return unique, points[first], hits
 
 
 def _voxel_keys(xyz: np.ndarray, size: float) -> np.ndarray:
