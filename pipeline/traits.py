@@ -161,9 +161,12 @@ class RobustTraits:
         self._pending_count = 0
         self._ground: list[float] = []
         self._cache: tuple[float, float, np.ndarray] | None = None
-        # The centre alone, asked every scan (the outline merge): min and max of the counted
-        # cells, without the caliper and the ground's median that width and height need.
-        self._centre: np.ndarray | None = None
+        # The centre alone is asked every scan (the outline merge): the x-y extent of the
+        # counted cells (hit in min_hits scans) is kept as cells reach min_hits (a cell's
+        # return never changes and its hits only grow), and found again after coarsening.
+        self._seen_count = 0
+        self._seen_lo = np.full(2, np.inf)
+        self._seen_hi = np.full(2, -np.inf)
 
     def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
         """One cluster of this tree: its returns in the world frame (already cut to this
@@ -178,7 +181,7 @@ class RobustTraits:
             self._ground.append(float(ground_world))
             if len(self._ground) > 400:  # a bounded, recent sample of the ground
                 self._ground = self._ground[-200:]
-        self._cache = self._centre = None
+        self._cache = None
         # Fold pending cells in once they outnumber the grid: amortised O(n log n).
         if self._pending_count > max(len(self._keys), 5000):
             self._consolidate()
@@ -192,7 +195,7 @@ class RobustTraits:
         self._pending.append((np.repeat(keys, hits), np.repeat(points, hits, axis=0)))
         self._pending_count += int(hits.sum())
         self._ground.extend(other._ground)
-        self._cache = self._centre = None
+        self._cache = None
         self._consolidate()
 
     def cells(self) -> tuple[np.ndarray, np.ndarray]:
@@ -220,13 +223,34 @@ class RobustTraits:
         grid_hits = self._hits.copy()
         grid_hits[at[known]] += hits[known]
         new = ~known
+        # The cells this merge brings to min_hits: grid cells crossing it, new ones at it.
+        need = self.config.min_hits
+        before, after = self._hits[at[known]], grid_hits[at[known]]
+        reached = np.vstack(
+            [
+                self._points[at[known][(before < need) & (after >= need)]],
+                points[new][hits[new] >= need],
+            ]
+        )
         keys = np.insert(self._keys, at[new], keys[new])
         points = np.insert(self._points, at[new], points[new], axis=0)
         hits = np.insert(grid_hits, at[new], hits[new])
+        coarsened = len(keys) > self.config.max_points
         while len(keys) > self.config.max_points:
             self.voxel *= 2.0
             keys, points, hits = _unique_cells(_voxel_keys(points, self.voxel), points, hits)
         self._keys, self._hits, self._points = keys, hits, points
+        if coarsened:  # other cells, other returns: the extent found again
+            self._seen_count, self._seen_lo, self._seen_hi = (
+                0,
+                np.full(2, np.inf),
+                np.full(2, -np.inf),
+            )
+            reached = points[hits >= need]
+        if len(reached):
+            self._seen_count += len(reached)
+            self._seen_lo = np.minimum(self._seen_lo, reached[:, :2].min(axis=0))
+            self._seen_hi = np.maximum(self._seen_hi, reached[:, :2].max(axis=0))
 
     def _seen(self) -> np.ndarray:
         """The cells hit in at least `min_hits` scans (their first returns)."""
@@ -254,18 +278,11 @@ class RobustTraits:
         return self._measure()[1]
 
     def centre(self) -> np.ndarray | None:
-        if self._cache is not None:
-            centre = self._cache[2]
-        elif self._centre is not None:
-            centre = self._centre
-        else:
-            seen = self._seen()
-            # caliper's centre, computed the same way on the same points
-            xy = seen[:, :2]
-            self._centre = centre = (
-                (xy.min(axis=0) + xy.max(axis=0)) / 2 if len(seen) >= 2 else np.full(2, np.nan)
-            )
-        return centre if np.isfinite(centre).all() else None
+        self._consolidate()
+        if self._seen_count < 2:
+            return None
+        # caliper's centre: the same minima and maxima of the same cells, the same sum
+        return (self._seen_lo + self._seen_hi) / 2
 
 
 def caliper(xy: np.ndarray, directions: int) -> tuple[float, np.ndarray]:
