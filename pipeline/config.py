@@ -16,10 +16,8 @@ import math
 from dataclasses import dataclass, field
 
 from treetraits.errors import ConfigError
+from treetraits.pipeline.methods import METHODS, TRAIT_METHODS  # noqa: F401  (re-exported)
 
-# pipeline.method: rph is the baseline as shipped; rph-vlp16 RPH retuned for single VLP-16 scans.
-METHODS = ("paper", "rph", "rph-vlp16")
-TRAIT_METHODS = ("paper", "robust")
 CLUSTERING_METHODS = ("kdtree", "dbscan")
 GROUND_METHODS = ("numpy", "open3d")
 GROUND_MODELS = ("terrain", "plane")

@@ -161,6 +161,12 @@ class RobustTraits:
         self._pending_count = 0
         self._ground: list[float] = []
         self._cache: tuple[float, float, np.ndarray] | None = None
+        # The centre alone is asked every scan (the outline merge): the x-y extent of the
+        # counted cells (hit in min_hits scans) is kept as cells reach min_hits (a cell's
+        # return never changes and its hits only grow), and found again after coarsening.
+        self._seen_count = 0
+        self._seen_lo = np.full(2, np.inf)
+        self._seen_hi = np.full(2, -np.inf)
 
     def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
         """One cluster of this tree: its returns in the world frame (already cut to this
@@ -200,25 +206,60 @@ class RobustTraits:
     def _consolidate(self) -> None:
         if not self._pending:
             return
-        keys = np.concatenate([self._keys, *(k for k, _ in self._pending)])
-        points = np.vstack([self._points, *(p for _, p in self._pending)])
-        hits = np.concatenate([self._hits, np.ones(self._pending_count, dtype=np.int64)])
+        # The pending cells among themselves first (a scan's few hundred), then merged into
+        # the sorted grid: a cell already there keeps its first return and adds the hits,
+        # a new one is inserted in key order. The same cells, returns and hits as one
+        # np.unique over the grid and the pending cells together, without sorting the
+        # whole grid again at every scan (the outline's centre is asked every scan).
+        keys, points, hits = _unique_cells(
+            np.concatenate([k for k, _ in self._pending]),
+            np.vstack([p for _, p in self._pending]),
+            np.ones(self._pending_count, dtype=np.int64),
+        )
         self._pending, self._pending_count = [], 0
-        while True:
-            # First return per cell in arrival order (deterministic); hits summed.
-            unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-            hits = np.bincount(inverse.ravel(), weights=hits).astype(np.int64)
-            keys, points = unique, points[first]
-            if len(keys) <= self.config.max_points:
-                break
+        at = np.searchsorted(self._keys, keys)
+        known = at < len(self._keys)
+        known[known] = self._keys[at[known]] == keys[known]
+        grid_hits = self._hits.copy()
+        grid_hits[at[known]] += hits[known]
+        new = ~known
+        # The cells this merge brings to min_hits: grid cells crossing it, new ones at it.
+        need = self.config.min_hits
+        before, after = self._hits[at[known]], grid_hits[at[known]]
+        reached = np.vstack(
+            [
+                self._points[at[known][(before < need) & (after >= need)]],
+                points[new][hits[new] >= need],
+            ]
+        )
+        keys = np.insert(self._keys, at[new], keys[new])
+        points = np.insert(self._points, at[new], points[new], axis=0)
+        hits = np.insert(grid_hits, at[new], hits[new])
+        coarsened = len(keys) > self.config.max_points
+        while len(keys) > self.config.max_points:
             self.voxel *= 2.0
-            keys = _voxel_keys(points, self.voxel)
+            keys, points, hits = _unique_cells(_voxel_keys(points, self.voxel), points, hits)
         self._keys, self._hits, self._points = keys, hits, points
+        if coarsened:  # other cells, other returns: the extent found again
+            self._seen_count, self._seen_lo, self._seen_hi = (
+                0,
+                np.full(2, np.inf),
+                np.full(2, -np.inf),
+            )
+            reached = points[hits >= need]
+        if len(reached):
+            self._seen_count += len(reached)
+            self._seen_lo = np.minimum(self._seen_lo, reached[:, :2].min(axis=0))
+            self._seen_hi = np.maximum(self._seen_hi, reached[:, :2].max(axis=0))
+
+    def _seen(self) -> np.ndarray:
+        """The cells hit in at least `min_hits` scans (their first returns)."""
+        points, hits = self.cells()
+        return points[hits >= self.config.min_hits]
 
     def _measure(self) -> tuple[float, float, np.ndarray]:
         if self._cache is None:
-            points, hits = self.cells()
-            seen = points[hits >= self.config.min_hits]
+            seen = self._seen()
             if len(seen) < 2:
                 self._cache = (float("nan"), float("nan"), np.full(2, np.nan))
             else:
@@ -237,8 +278,11 @@ class RobustTraits:
         return self._measure()[1]
 
     def centre(self) -> np.ndarray | None:
-        centre = self._measure()[2]
-        return centre if np.isfinite(centre).all() else None
+        self._consolidate()
+        if self._seen_count < 2:
+            return None
+        # caliper's centre: the same minima and maxima of the same cells, the same sum
+        return (self._seen_lo + self._seen_hi) / 2
 
 
 def caliper(xy: np.ndarray, directions: int) -> tuple[float, np.ndarray]:
@@ -248,6 +292,14 @@ def caliper(xy: np.ndarray, directions: int) -> tuple[float, np.ndarray]:
     projected = xy @ np.stack([np.cos(angles), np.sin(angles)])
     extents = projected.max(axis=0) - projected.min(axis=0)
     return float(extents.max()), (xy.min(axis=0) + xy.max(axis=0)) / 2
+
+
+def _unique_cells(keys: np.ndarray, points: np.ndarray, hits: np.ndarray):
+    """Cells in key order: each key's first point in arrival order (deterministic) and
+    its hits summed."""
+    unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    hits = np.bincount(inverse.ravel(), weights=hits).astype(np.int64)
+    return unique, points[first], hits
 
 
 def _voxel_keys(xyz: np.ndarray, size: float) -> np.ndarray:

@@ -25,8 +25,6 @@ import contextlib
 import fcntl
 import fnmatch
 import os
-import shutil
-import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -176,6 +174,8 @@ class OutputDir:
             )
 
     def __enter__(self) -> Path:
+        import tempfile  # here: the command line's parsers import this module
+
         self._lock = output_lock(self.directory, f".{self.tag}.lock")
         self._lock.__enter__()
         try:
@@ -197,6 +197,8 @@ class OutputDir:
     def _remove_stale_staging(self) -> None:
         """Staging directories of runs killed before they ended (we hold the lock: nobody
         else is using them)."""
+        import shutil
+
         for entry in self.directory.glob(f".{self.tag}.staging-*"):
             shutil.rmtree(entry, ignore_errors=True)
 
@@ -211,6 +213,8 @@ class OutputDir:
                 self._commit()
         finally:
             if self.staging is not None:
+                import shutil
+
                 shutil.rmtree(self.staging, ignore_errors=True)
             self._release()
 

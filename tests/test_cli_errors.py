@@ -262,3 +262,21 @@ def test_sigterm_in_a_forced_replay_keeps_the_earlier_run_and_the_interrupted_on
     # The next forced replay replaces the earlier run and leaves the interrupted one.
     assert main(["replay", str(survey.recording), "--out", str(out), "--force"]) == 0
     assert list(out.glob("interrupted-*")) == [aside]
+
+
+def test_a_sqlite_error_is_one_line_exit_6(monkeypatch, capsys):
+    """The boundary names sqlite3.Error without importing SQLite at every start: a command
+    that used SQLite and failed in it still ends in one line, exit 6."""
+    import argparse
+    import sqlite3
+
+    import treetraits.cli as cli
+
+    def fails(args):
+        sqlite3.connect(":memory:").execute("select * from no_such_table")
+
+    parser = argparse.ArgumentParser()
+    parser.set_defaults(run=fails)
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    assert main([]) == EXIT_IO
+    assert "SQLite: no such table: no_such_table" in one_line(capsys)

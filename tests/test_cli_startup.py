@@ -51,3 +51,20 @@ def test_help_loads_no_heavy_library(command):
     assert "treetraits.cli" in modules  # the importtime listing was read
     loaded = sorted({m.split(".")[0] for m in modules} & set(HEAVY))
     assert loaded == [], f"`treetraits {' '.join(command)} --help` imported {loaded}"
+
+
+# Standard-library and own modules that cost a start several milliseconds each (inspect
+# through dataclasses, logging, sqlite3's shared library, tempfile with shutil and random,
+# statistics with fractions and decimal; the config schema's hundred dataclasses): loaded
+# by the commands that use them, never by the parser.
+SLOW = (
+    "sqlite3", "tempfile", "statistics", "logging", "inspect", "dataclasses", "csv",
+    "datetime", "treetraits.pipeline.config",
+)  # fmt: skip
+
+
+def test_help_loads_no_slow_module():
+    modules = imported_modules("--help")
+    assert "treetraits.cli" in modules
+    loaded = sorted(set(SLOW) & modules)
+    assert loaded == [], f"`treetraits --help` imported {loaded}"

@@ -12,7 +12,7 @@ import pytest
 from tests.conftest import first_complete_scan
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.drivers.records import POINT_DTYPE
-from treetraits.pipeline.clustering import attach, euclidean_clusters
+from treetraits.pipeline.clustering import attach, connected_labels, euclidean_clusters
 from treetraits.pipeline.config import ClusterConfig, CropConfig, DetectionConfig, GroundConfig
 from treetraits.pipeline.detection import (
     FLAT,
@@ -182,6 +182,27 @@ def test_kdtree_and_dbscan_cluster_a_twin_scan_alike(tree_scan):
     a = euclidean_clusters(voxels, 0.5, "kdtree")
     b = euclidean_clusters(voxels, 0.5, "dbscan")
     assert np.array_equal(a, b)
+
+
+def test_connected_labels_are_scipys():
+    """Our union-find against SciPy's connected_components (what clustering used before):
+    a chain linked from its far end (the most rounds of joining), a star, isolated nodes,
+    random sparse graphs."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(3)
+    graphs = [
+        (50, np.array([[k, k + 1] for k in range(48, -1, -1)])),
+        (30, np.array([[0, k] for k in range(29, 0, -2)])),
+        (5, np.zeros((0, 2), dtype=np.int64)),
+    ]
+    for n in (10, 200, 2000):
+        graphs.append((n, np.sort(rng.integers(0, n, size=(n, 2)), axis=1)))
+    for n, pairs in graphs:
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        _, expected = connected_components(graph, directed=False)
+        assert connected_labels(n, pairs).tolist() == expected.tolist()
 
 
 def test_attach_takes_the_nearest_anchor_within_reach():

@@ -120,6 +120,35 @@ def test_robust_measures_the_cells_seen_in_several_scans():
     assert traits.height == pytest.approx(4.5, abs=0.06)
 
 
+def test_robust_cells_are_each_cells_first_return_and_scan_count():
+    """The grid kept scan by scan (merged into, the centre asked in between) is, cell for
+    cell, the definition: the first return that fell in each cell and the number of
+    scans that hit it."""
+    rng = np.random.default_rng(4)
+    traits = RobustTraits(CONFIG)
+    scans = [s + rng.normal(0, 0.02, s.shape) for s in crown_scans(rng)]
+    for points in scans:
+        traits.observe(None, None, 0.0, points, 0.0)
+        traits.centre()
+    first: dict[tuple, np.ndarray] = {}
+    hits: dict[tuple, int] = {}
+    for points in scans:
+        keys = [tuple(c) for c in np.floor(points / CONFIG.voxel_m).astype(int)]
+        for cell, point in zip(keys, points, strict=True):
+            first.setdefault(cell, point)
+        for cell in set(keys):
+            hits[cell] = hits.get(cell, 0) + 1
+    points, counts = traits.cells()
+    got = {
+        tuple(c): (p, n)
+        for c, p, n in zip(
+            np.floor(points / CONFIG.voxel_m).astype(int), points, counts, strict=True
+        )
+    }
+    assert got.keys() == first.keys()
+    assert all(np.array_equal(got[c][0], first[c]) and got[c][1] == hits[c] for c in first)
+
+
 def test_robust_height_is_above_the_median_ground():
     rng = np.random.default_rng(1)
     traits = RobustTraits(CONFIG)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import signal
-import sqlite3
 import sys
 import threading
 
@@ -96,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except OSError as exc:
         return _fail(describe_os_error(exc), EXIT_IO)
-    except sqlite3.Error as exc:
+    except _sqlite_error() as exc:  # evaluated only when an exception gets here
         return _fail(f"SQLite: {exc}", EXIT_IO)
     except RecursionError:
         return _fail("an input is nested too deeply to be read (JSON or TOML?)", EXIT_USAGE)
@@ -114,6 +113,17 @@ def main(argv: list[str] | None = None) -> int:
 
 
 INTERRUPTED = "interrupted (SIGINT)"
+
+
+class _NoSqliteError(Exception):
+    """Raised by nothing: what `_sqlite_error` names while SQLite is not loaded."""
+
+
+def _sqlite_error() -> type[Exception]:
+    """sqlite3.Error once SQLite is loaded (only then can it have raised one). Importing it
+    for the `except` clause alone would cost every start, `--help` included."""
+    module = sys.modules.get("sqlite3")
+    return module.Error if module is not None else _NoSqliteError
 
 
 class Terminated(KeyboardInterrupt):

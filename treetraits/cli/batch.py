@@ -13,7 +13,7 @@ from treetraits.errors import EXIT_DATA_LOSS, ConfigError
 
 
 def register(commands: argparse._SubParsersAction) -> None:
-    from treetraits.pipeline.config import METHODS, TRAIT_METHODS
+    from treetraits.pipeline.methods import METHODS, TRAIT_METHODS
 
     batch = commands.add_parser(
         "batch",

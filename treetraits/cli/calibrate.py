@@ -7,7 +7,6 @@ import argparse
 import contextlib
 import json
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -228,6 +227,8 @@ def _write_reflectance(path: Path, section: dict[str, list[float]]) -> None:
         raise CalibrationError(f"{path}: not written: {exc}") from exc
     text = json.dumps(data, indent=2) + "\n"
     directory = path.resolve().parent
+    import tempfile
+
     fd, temp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
     try:
         with os.fdopen(fd, "w") as file:

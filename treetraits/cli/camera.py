@@ -5,10 +5,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import statistics
 import sys
 import time
-from datetime import datetime
 from pathlib import Path
 
 from treetraits.errors import ConfigError, ParseError
@@ -125,6 +123,8 @@ def _start_ns(text: str) -> int:
     if text.strip().lstrip("-").isdigit():
         return int(text)
     try:
+        from datetime import datetime
+
         moment = datetime.fromisoformat(text.replace("Z", "+00:00"))
     except ValueError:
         raise ConfigError(
@@ -156,6 +156,8 @@ def run_info(args: argparse.Namespace) -> int:
 
 def _measure(frames) -> dict:
     """Rate, gaps, latency and size from a list of frames (no decoding)."""
+    import statistics
+
     from treetraits.drivers.camera.frames import interval_summary
 
     times = [f.t_capture for f in frames]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import textwrap
 from pathlib import Path
 
@@ -41,6 +40,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import shutil
+
     from treetraits.service.doctor import Status, run_checks
 
     mark = {Status.OK: "ok", Status.WARN: "WARN", Status.FAIL: "FAIL"}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
@@ -164,6 +163,8 @@ EXPORT_OUTPUTS = ("scans.csv", "scan_*.pcd")
 
 
 def run_export(args: argparse.Namespace) -> int:
+    import csv
+
     from tqdm import tqdm
 
     from treetraits.drivers.records import Scan

@@ -15,7 +15,7 @@ from treetraits.service.outdir import OutputDir
 
 
 def register(commands: argparse._SubParsersAction) -> None:
-    from treetraits.pipeline.config import METHODS, TRAIT_METHODS
+    from treetraits.pipeline.methods import METHODS, TRAIT_METHODS
 
     replay = commands.add_parser(
         "replay",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -11,8 +10,6 @@ from treetraits.service import DEFAULT_CONFIG_PATH
 
 if TYPE_CHECKING:
     from treetraits.service.config import ServiceConfig
-
-log = logging.getLogger("treetraits.service")
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -55,6 +52,8 @@ def read_config(path: Path | None) -> ServiceConfig:
 
 
 def run_service(args: argparse.Namespace) -> int:
+    import logging
+
     from treetraits.service.config import with_overrides
     from treetraits.service.logs import setup_logging
     from treetraits.service.runtime import Service
@@ -66,7 +65,7 @@ def run_service(args: argparse.Namespace) -> int:
         cfg = with_overrides(cfg, output={"dir": str(args.out_dir.resolve())})
     setup_logging(cfg.service.log_level)
     if args.config is None:
-        log.info(
+        logging.getLogger("treetraits.service").info(
             "no --config: using %s",
             DEFAULT_CONFIG_PATH if DEFAULT_CONFIG_PATH.is_file() else "the built-in defaults",
         )

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 from pathlib import Path
 
@@ -308,6 +307,8 @@ def _beside(out: Path, staged: Path) -> Path:
 
 
 def run_sim(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from tqdm import tqdm
 
     from treetraits.drivers.calibration import load_calibration

@@ -1,13 +1,13 @@
 """The methods `treetraits eval` compares. A module of their own, with no imports of ours:
-the command line's parser lists them without loading the twin or the pipeline."""
+the command line's parser lists them without loading the twin or the pipeline (a named
+tuple, not a dataclass: `dataclasses` pulls `inspect` into every start)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 
-@dataclass(frozen=True)
-class Method:
+class Method(NamedTuple):
     name: str
     replay_method: str  # ReplayOptions.method
     traits: str  # ReplayOptions.traits
