@@ -15,7 +15,7 @@ import numpy as np
 
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
-from treetraits.pipeline.classify import LOW, TREE, Votes
+from treetraits.pipeline.classify import FLOATING, LOW, Votes
 from treetraits.pipeline.config import MapperConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
@@ -94,6 +94,10 @@ class _Tree:
     ndvi_sum: float = 0.0
     ndvi_count: int = 0
     top_seen: bool = False
+
+
+# Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).
+UNCLAIMING = (LOW, FLOATING)
 
 
 class TreeMapper:
@@ -194,7 +198,8 @@ class TreeMapper:
             {
                 tree_id
                 for tree_id, tree in self._trees.items()
-                if tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all) == TREE
+                if tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all)
+                not in UNCLAIMING
             },
         )
         # World points for the outline: not while turning fast; and for the paper's traits
@@ -474,11 +479,12 @@ class _Centres:
     """The tracked trees' x-y centres in the traits frame (their Kalman states), as
     arrays: the Voronoi cut compares a cluster with its neighbours at array speed."""
 
-    def __init__(self, tracks, traits_from_map: np.ndarray, trees: set[int]):
+    def __init__(self, tracks, traits_from_map: np.ndarray, claiming: set[int]):
         self.ids = np.array([tr.tree_id for tr in tracks], dtype=np.int64)
-        # Only trees cut a neighbour: a weed's or a post's track beside a crown is no
-        # claim on its foliage.
-        self.tree = np.array([tr.tree_id in trees for tr in tracks], dtype=bool)
+        # Which tracks take their side of the cut: trees, posts, people, walls. The
+        # understorey's (a weed, a drip line's span under a crown) and a crown fragment's
+        # are no claim on the foliage above or around them.
+        self.claims = np.array([tr.tree_id in claiming for tr in tracks], dtype=bool)
         states = np.array([tr.state[:3] for tr in tracks]).reshape(-1, 3)
         # Row by row as `R @ p + t` for each tree, so the values are those of one at a time.
         self.xy = np.array(
@@ -492,7 +498,7 @@ class _Centres:
         own = self.xy[np.flatnonzero(self.ids == tree_id)[0]]
         reach = float(np.sqrt(((xy - own) ** 2).sum(axis=1).max())) if len(xy) else 0.0
         gap = self.xy - own
-        near = self.tree & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
+        near = self.claims & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
         if not near.any():
             return np.ones(len(xy), dtype=bool)
         others = self.xy[near]
