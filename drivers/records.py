@@ -180,6 +180,11 @@ class Tree:
     sensing range and did not find: its position is the map's, `tree_id` is empty, its
     traits NaN, no times) or "rejected" (an object seen as often as a tree that is not
     one: `reason` says why, see `pipeline.classify.REASONS`).
+
+    `height_top_seen`: whether the LiDAR's beams passed over the crown's top in some scan
+    (the height is then the top's); False: the crown went on above the top beam in every
+    scan and `height_m` is a lower bound; None where nobody judged it (a missing tree,
+    the baselines).
     """
 
     tree_id: str
@@ -198,3 +203,4 @@ class Tree:
     row: str | None = None
     status: str = "found"
     reason: str | None = None
+    height_top_seen: bool | None = None

@@ -182,6 +182,12 @@ class ClusterConfig:
     # 0.6 m: weeds and cover crop end there, a drip line hangs at 0.3-0.4 m, and citrus
     # skirts have begun by then; the youngest trees mapped (1.0 m) reach above it.
     bridge_min_height_m: float = 0.6
+    # A cluster's top is seen when the beam above the highest ring that hit it passed
+    # over every bearing the cluster spans, widened by this on each side
+    # (`pipeline.visibility`): the VLP-16 fires every 0.1-0.4 deg (5-20 Hz), so 1 deg
+    # holds 5-20 firings of that beam and an object just past the cluster's edge that
+    # hides its top is not missed.
+    top_window_deg: float = 1.0
     # "kdtree": scipy cKDTree pairs + connected components; "dbscan": open3d
     # `cluster_dbscan(eps, min_points=1)`. Same clusters; see docs for the timing.
     method: str = "kdtree"
@@ -393,6 +399,7 @@ def _validate_detection(d: DetectionConfig) -> None:
     _need(k.min_tree_spacing_m > 0, "detection.cluster.min_tree_spacing_m must be > 0")
     _need(k.bridge_min_height_m >= 0, "detection.cluster.bridge_min_height_m must be >= 0")
     _need(k.stem_radius_m > 0, "detection.cluster.stem_radius_m must be > 0")
+    _need(0 < k.top_window_deg <= 10, "detection.cluster.top_window_deg must be in (0, 10]")
     _need(k.min_stem_height_m >= 0, "detection.cluster.min_stem_height_m must be >= 0")
     _need(k.stem_judged_from_m >= 0, "detection.cluster.stem_judged_from_m must be >= 0")
     _need(

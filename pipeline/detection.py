@@ -27,6 +27,7 @@ from treetraits.pipeline.config import (
 from treetraits.pipeline.stems import find_stems, stem_of_voxels
 from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
 from treetraits.pipeline.understorey import join_understorey
+from treetraits.pipeline.visibility import BeamsAbove
 
 # Voxel keys: 21 bits per axis (+-1M cells: +-100 km at 0.1 m), packed into one int64.
 _KEY_BITS = 21
@@ -77,6 +78,9 @@ class Cluster:
     ground_z: float  # ground height under the centroid, base frame
     shape: Shape  # what the tree rules read (`pipeline.classify`)
     verdict: str  # "tree" or the reason it is not one (`classify.REASONS`)
+    # The beam above its topmost return passed over it (`pipeline.visibility`): its
+    # height in this scan is its top, not the top beam's reach.
+    top_seen: bool = False
 
     @property
     def features(self) -> np.ndarray:
@@ -254,6 +258,7 @@ def detect(
     xyz = to_base(points, T_base_lidar)
     keep = np.flatnonzero(crop_mask(xyz, config.crop, T_base_lidar[:2, 3]))
     xyz, ring = np.take(xyz, keep, axis=0), points["ring"][keep]
+    source = keep  # each kept return's index in `points`
     counts["cropped"] = len(xyz)
     clock.lap("crop")
 
@@ -280,6 +285,7 @@ def detect(
     counts["ground"] = int(len(xyz) - kept.sum())
     counts["skirt"] = int(skirt.sum())
     xyz, ring, above, height = xyz[kept], ring[kept], above[kept], height[kept]
+    source = source[kept]
     ndvi = None if ndvi is None else ndvi[kept]
     clock.lap("ndvi_check")
 
@@ -297,7 +303,7 @@ def detect(
     stem_of, is_stem = _stems(
         xyz, height, ring, T_base_lidar[:3, 3], blobs, voxels, voxel_height, config
     )
-    counts["stems"] = int(sum(is_stem))
+    counts["stems"] = int(stem_of.max(initial=-1) + 1)
     clock.lap("stems")
 
     # Crowns: Euclidean clustering of the voxels that reach above the understorey. What
@@ -324,8 +330,24 @@ def detect(
     counts["clusters_dropped"] = int(labels.max(initial=-1) + 1 - len(clusters_kept))
     clock.lap("cluster")
 
+    beams = BeamsAbove(points)
+    window = math.radians(config.cluster.top_window_deg)
+
+    def top_seen(members: np.ndarray) -> bool:
+        return beams.top_seen(source[members], points, window, config.cluster.tolerance_m)
+
     clusters = _features(
-        clusters_kept, labels, voxel_of, voxels, xyz, ring, ndvi, ground, lidar_xy, config.classify
+        clusters_kept,
+        labels,
+        voxel_of,
+        voxels,
+        xyz,
+        ring,
+        ndvi,
+        ground,
+        lidar_xy,
+        config.classify,
+        top_seen,
     )
     counts["clustered_voxels"] = sum(c.num_points for c in clusters)
     clock.lap("features")
@@ -390,20 +412,46 @@ def _stems(
     """The stem (`pipeline.stems`) each voxel belongs to (-1 for none), and which of the
     band's blobs are stems."""
     cluster = config.cluster
-    if cluster.min_stem_height_m <= 0 or not blobs:
+    if cluster.min_stem_height_m <= 0:
         return np.full(len(voxels), -1, dtype=np.int64), [False] * len(blobs)
-    centres = np.array([centre for _, centre in blobs])
-    stems = find_stems(xyz, height, ring, lidar_xyz, centres, cluster, config.classify)
+    centres = np.array([centre for _, centre in blobs]).reshape(-1, 2)
+    band_top = cluster.trunk_band_m[1]
+    stems = find_stems(xyz, height, ring, lidar_xyz, centres, band_top, cluster, config.classify)
     is_stem = [any(np.array_equal(c, stem.centre) for stem in stems) for c in centres]
+    # A post or a person whose foot stands in a weed clump (where the mower cannot reach)
+    # is no blob in the trunk band: seed it again just above the understorey.
+    upper = _band_blobs(xyz, height, cluster, stem_seed_band(cluster))
+    found = np.array([stem.centre for stem in stems]).reshape(-1, 2)
+    seeds = [
+        centre
+        for _, centre in upper
+        if not (np.hypot(*(found - centre).T) <= cluster.stem_radius_m).any()
+    ]
+    if seeds:
+        seed_top = stem_seed_band(cluster)[1]
+        stems += find_stems(
+            xyz, height, ring, lidar_xyz, np.array(seeds), seed_top, cluster, config.classify
+        )
     return stem_of_voxels(voxels, voxel_height, stems, cluster), is_stem
 
 
-def _band_blobs(
-    xyz: np.ndarray, height: np.ndarray, config: ClusterConfig
-) -> list[tuple[int, np.ndarray]]:
-    """Blobs of the trunk band's returns (x-y) 0.25 m apart at most, no wider than
-    `max_trunk_width_m`: (returns, centre) of each. Trunks, posts and legs."""
+def stem_seed_band(config: ClusterConfig) -> tuple[float, float]:
+    """Where a stem hidden in the understorey at its foot is seeded: the trunk band's
+    depth, from the understorey's top (`bridge_min_height_m`) up."""
     low, high = config.trunk_band_m
+    return config.bridge_min_height_m, config.bridge_min_height_m + (high - low)
+
+
+def _band_blobs(
+    xyz: np.ndarray,
+    height: np.ndarray,
+    config: ClusterConfig,
+    band: tuple[float, float] | None = None,
+) -> list[tuple[int, np.ndarray]]:
+    """Blobs of the trunk band's returns (or `band`'s: heights above the terrain) (x-y)
+    0.25 m apart at most, no wider than `max_trunk_width_m`: (returns, centre) of each.
+    Trunks, posts and legs."""
+    low, high = band or config.trunk_band_m
     xy = xyz[(height >= low) & (height <= high), :2]
     if len(xy) < config.min_trunk_points:
         return []
@@ -438,7 +486,17 @@ def _size_filter(labels: np.ndarray, config: ClusterConfig) -> np.ndarray:
 
 
 def _features(
-    kept, labels, voxel_of, voxels, xyz, ring, ndvi, ground, lidar_xy, classify: ClassifyConfig
+    kept,
+    labels,
+    voxel_of,
+    voxels,
+    xyz,
+    ring,
+    ndvi,
+    ground,
+    lidar_xy,
+    classify: ClassifyConfig,
+    top_seen: Callable[[np.ndarray], bool],
 ) -> list[Cluster]:
     point_label = labels[voxel_of]
     order = np.argsort(point_label, kind="stable")
@@ -470,6 +528,7 @@ def _features(
                 ground_z=ground_z,
                 shape=shape,
                 verdict=judge(shape, classify),
+                top_seen=top_seen(members),
             )
         )
     return clusters

@@ -53,6 +53,7 @@ CSV_COLUMNS = (
     "first_seen",
     "last_seen",
     "status",  # appended (docs/architecture.md, Outputs): found or missing
+    "height_top_seen",  # appended: true, false (the height is a lower bound) or empty
 )
 FOUND, MISSING, REJECTED = "found", "missing", "rejected"
 
@@ -164,6 +165,7 @@ def georeference(
                 row=match.row if match else None,
                 status=FOUND if kind == TREE else REJECTED,
                 reason=None if kind == TREE else kind,
+                height_top_seen=getattr(tree, "height_top_seen", None),
             )
         )
     return out
@@ -276,6 +278,7 @@ def csv_row(tree: Tree) -> list[str]:
         iso_utc(tree.first_seen),
         iso_utc(tree.last_seen),
         tree.status,
+        _flag(tree.height_top_seen),
     ]
 
 
@@ -364,10 +367,15 @@ def _feature(tree: Tree) -> dict[str, Any]:
         "first_seen": iso_utc(tree.first_seen) or None,
         "last_seen": iso_utc(tree.last_seen) or None,
         "status": tree.status,
+        "height_top_seen": tree.height_top_seen,
     }
     if tree.reason is not None:
         properties["reason"] = tree.reason
     return {"type": "Feature", "geometry": geometry, "properties": properties}
+
+
+def _flag(value: bool | None) -> str:
+    return "" if value is None else str(bool(value)).lower()
 
 
 def _number(value: float | None, decimals: int) -> str:

@@ -15,7 +15,7 @@ import numpy as np
 
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
-from treetraits.pipeline.classify import LOW, Votes
+from treetraits.pipeline.classify import FLOATING, LOW, Votes
 from treetraits.pipeline.config import MapperConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
@@ -82,6 +82,9 @@ class TrackedTree:
     traits: str  # "paper" or "robust"
     # "tree", or why it is not one (`pipeline.classify.REASONS`), by its scans' majority
     kind: str = "tree"
+    # Some scan's beam passed over its top (`pipeline.visibility`); else its height is a
+    # lower bound: the crown went on above the LiDAR's top beam in every scan.
+    height_top_seen: bool = False
 
 
 @dataclass
@@ -90,6 +93,11 @@ class _Tree:
     votes: Votes = field(default_factory=Votes)
     ndvi_sum: float = 0.0
     ndvi_count: int = 0
+    top_seen: bool = False
+
+
+# Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).
+UNCLAIMING = (LOW, FLOATING)
 
 
 class TreeMapper:
@@ -183,7 +191,17 @@ class TreeMapper:
 
         # Traits: each cluster to the tree it went to; then trees merged this scan.
         traits_from_base = self._traits_from_map @ map_from_base
-        centres = _Centres(self.tracker.tracks, self._traits_from_map)
+        classify = self.config.detection.classify
+        centres = _Centres(
+            self.tracker.tracks,
+            self._traits_from_map,
+            {
+                tree_id
+                for tree_id, tree in self._trees.items()
+                if tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all)
+                not in UNCLAIMING
+            },
+        )
         # World points for the outline: not while turning fast; and for the paper's traits
         # (which use the outline for the centre only) not without a pose or a motion, where
         # the cells could not follow the robot and the Kalman state is the better centre.
@@ -280,6 +298,7 @@ class TreeMapper:
             last_seen=track.last_seen,
             traits=tree.traits.method,
             kind=tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all),
+            height_top_seen=tree.top_seen,
         )
 
     def _moved(self, tree: TrackedTree, traits_from_map: np.ndarray, back: np.ndarray):
@@ -380,14 +399,21 @@ class TreeMapper:
     def _observe(
         self, tree: _Tree, cluster: Cluster, traits_from_base, tree_id, centres, outline: bool
     ) -> None:
-        world = ground_world = None
+        # A cluster that took in a piece of a neighbour's crown (touching crowns whose
+        # trunk was hidden for a few scans) gives it back before anything is measured.
+        world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
+        own = centres.nearest_is(world[:, :2], tree_id)
+        points, ring = cluster.points[own], cluster.ring[own]
+        world_points = ground_world = None
         if outline:  # both methods keep the outline in the world frame (its centre)
-            world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
-            world = world[centres.nearest_is(world[:, :2], tree_id)]
+            world_points = world[own]
             # The ground under the cluster, carried into the world with the full attitude.
             foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
             ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
-        tree.traits.observe(cluster.points, cluster.ring, cluster.ground_z, world, ground_world)
+        tree.traits.observe(points, ring, cluster.ground_z, world_points, ground_world)
+        # The cluster's top in view counts for this tree if that top is its own.
+        if cluster.top_seen and own[int(np.argmax(cluster.points[:, 2]))]:
+            tree.top_seen = True
         if np.isfinite(cluster.ndvi):
             tree.ndvi_sum += cluster.ndvi * len(cluster.points)
             tree.ndvi_count += len(cluster.points)
@@ -440,6 +466,7 @@ class TreeMapper:
         tree.votes.absorb(gone.votes)
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
+        tree.top_seen = tree.top_seen or gone.top_seen
 
 
 def _resolve(alias: dict[int, int], tree_id: int) -> int:
@@ -452,8 +479,12 @@ class _Centres:
     """The tracked trees' x-y centres in the traits frame (their Kalman states), as
     arrays: the Voronoi cut compares a cluster with its neighbours at array speed."""
 
-    def __init__(self, tracks, traits_from_map: np.ndarray):
+    def __init__(self, tracks, traits_from_map: np.ndarray, claiming: set[int]):
         self.ids = np.array([tr.tree_id for tr in tracks], dtype=np.int64)
+        # Which tracks take their side of the cut: trees, posts, people, walls. The
+        # understorey's (a weed, a drip line's span under a crown) and a crown fragment's
+        # are no claim on the foliage above or around them.
+        self.claims = np.array([tr.tree_id in claiming for tr in tracks], dtype=bool)
         states = np.array([tr.state[:3] for tr in tracks]).reshape(-1, 3)
         # Row by row as `R @ p + t` for each tree, so the values are those of one at a time.
         self.xy = np.array(
@@ -467,7 +498,7 @@ class _Centres:
         own = self.xy[np.flatnonzero(self.ids == tree_id)[0]]
         reach = float(np.sqrt(((xy - own) ** 2).sum(axis=1).max())) if len(xy) else 0.0
         gap = self.xy - own
-        near = (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
+        near = self.claims & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
         if not near.any():
             return np.ones(len(xy), dtype=bool)
         others = self.xy[near]

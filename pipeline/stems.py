@@ -8,14 +8,15 @@ and the person joins two trees into one cluster that no trunk cut can part (the 
 are a trunk-sized blob between the two trunks).
 
 A stem is a smooth vertical column standing clear: a blob of returns in the trunk band
-(as a trunk is), over which returns stand without a gap, within a person's half-width
-of its axis, up to at least `min_stem_height_m` (or the top of the LiDAR's view), are
-smooth along the rings (`classify.roughness`: clothes, wood, concrete and steel are
-smooth, foliage is not) and have little around them. A tree's trunk passes the first
-test and fails the others: above a citrus trunk (0.35-0.6 m, where the skirt starts)
-the column holds either nothing (the crown's surface is farther out than a person's
-half-width) or foliage (a young tree's crown, its apex), which is rough, and the crown
-is around it.
+(as a trunk is; or, where a weed clump hides its foot, in a band as deep just above the
+understorey, `detection.stem_seed_band`), over which returns stand without a gap, within
+a person's half-width of its axis, up to at least `min_stem_height_m` (or the top of the
+LiDAR's view), are smooth along the rings (`classify.roughness`: clothes, wood, concrete
+and steel are smooth, foliage is not) and have little around them. A tree's trunk passes
+the first test and fails the others: above a citrus trunk (0.35-0.6 m, where the skirt
+starts) the column holds either nothing (the crown's surface is farther out than a
+person's half-width) or foliage (a young tree's crown, its apex), which is rough, and
+the crown is around it.
 """
 
 from __future__ import annotations
@@ -51,16 +52,17 @@ def find_stems(
     ring: np.ndarray,
     lidar_xyz: np.ndarray,
     blob_centres: np.ndarray,
+    band_top: float,
     config: ClusterConfig,
     classify: ClassifyConfig,
 ) -> list[Stem]:
-    """The stems among the trunk band's blobs (`blob_centres`, K x 2). `xyz` the scan's
-    returns clear of the ground (`base`), `height` above the terrain, `ring` each one's;
-    `lidar_xyz` the LiDAR's origin (`base`)."""
+    """The stems among the blobs (`blob_centres`, K x 2) of a band whose top is
+    `band_top` above the terrain (the trunk band, or the seed band above the
+    understorey). `xyz` the scan's returns clear of the ground (`base`), `height` above
+    the terrain, `ring` each one's; `lidar_xyz` the LiDAR's origin (`base`)."""
     stems: list[Stem] = []
     if len(xyz) == 0:
         return stems
-    band_top = config.trunk_band_m[1]
     lidar_xy = lidar_xyz[:2]
     # The highest ring's elevation (+15 deg on a VLP-16, +10 on a Puck Hi-Res): a column
     # near the robot runs out of the field of view before it reaches its top.

@@ -5,7 +5,8 @@ Tables:
 - `run`: key/value facts about the run (software, calibration, method, start time).
 - `trees`: the latest state of every tree (one row per tree, replaced on each update);
   `status` found, or missing for a field-map tree passed and not found (tree_id
-  `missing:<field id>`, replaced at each export).
+  `missing:<field id>`, replaced at each export); `height_top_seen` 1 when some scan's
+  beam passed over the crown's top, 0 when its height is a lower bound, NULL unjudged.
 - `rejected`: objects seen as often as trees that are not trees, with the reason
   (replaced at each export).
 - `observations`: every per-scan observation of a tree or object (append only).
@@ -30,7 +31,8 @@ CREATE TABLE IF NOT EXISTS trees (
     easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
     width_m REAL, height_m REAL, ndvi REAL,  -- NULL until measured
     observations INTEGER NOT NULL, first_seen INTEGER, last_seen INTEGER,
-    status TEXT NOT NULL DEFAULT 'found'
+    status TEXT NOT NULL DEFAULT 'found',
+    height_top_seen INTEGER  -- 1, 0 (the height is a lower bound), NULL (not judged)
 );
 CREATE TABLE IF NOT EXISTS rejected (
     tree_id TEXT PRIMARY KEY, reason TEXT NOT NULL,
@@ -71,6 +73,13 @@ class TraitStore:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable at checkpoints
         self._db.executescript(SCHEMA)
+        self._add_missing_columns()
+
+    def _add_missing_columns(self) -> None:
+        """A store written before a column was appended gets it (NULL: not known)."""
+        have = {row[1] for row in self._db.execute("PRAGMA table_info(trees)")}
+        if "height_top_seen" not in have:
+            self._db.execute("ALTER TABLE trees ADD COLUMN height_top_seen INTEGER")
 
     def set_run_facts(self, facts: dict) -> None:
         self._db.execute("BEGIN")
@@ -116,9 +125,16 @@ class TraitStore:
 
     def _insert_trees(self, trees: Iterable[Tree]) -> None:
         self._db.executemany(
-            "INSERT OR REPLACE INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            "INSERT OR REPLACE INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             [
-                (t.tree_id or f"missing:{t.field_id}", t.field_id, t.row, *_measured(t), t.status)
+                (
+                    t.tree_id or f"missing:{t.field_id}",
+                    t.field_id,
+                    t.row,
+                    *_measured(t),
+                    t.status,
+                    None if t.height_top_seen is None else int(t.height_top_seen),
+                )
                 for t in trees
             ],
         )
@@ -146,10 +162,13 @@ class TraitStore:
     def trees(self) -> list[Tree]:
         rows = self._db.execute(
             "SELECT tree_id, easting, northing, utm_zone, lat, lon, width_m, height_m, ndvi, "
-            "observations, first_seen, last_seen, field_id, row, status FROM trees "
-            "ORDER BY tree_id"
+            "observations, first_seen, last_seen, field_id, row, status, height_top_seen "
+            "FROM trees ORDER BY tree_id"
         ).fetchall()
-        return [Tree(*row) for row in rows]
+        return [
+            Tree(*row[:-1], height_top_seen=None if row[-1] is None else bool(row[-1]))
+            for row in rows
+        ]
 
     def observation_count(self) -> int:
         return self._db.execute("SELECT COUNT(*) FROM observations").fetchone()[0]

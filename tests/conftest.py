@@ -42,6 +42,7 @@ CONTRACT_CSV_COLUMNS = [
     "first_seen",
     "last_seen",
     "status",  # appended after the contract's fourteen: found or missing
+    "height_top_seen",  # appended: true, false (height a lower bound) or empty
 ]
 
 

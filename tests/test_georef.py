@@ -35,7 +35,9 @@ E0, N0 = 467_000.0, 3_758_000.0
 T_SEEN = int(datetime(2026, 11, 22, 10, 15, 30, tzinfo=timezone.utc).timestamp()) * 10**9
 
 
-def tracked(tree_id, x, y, frame="utm", width=2.7, height=2.6, ndvi=0.61, seen=T_SEEN):
+def tracked(
+    tree_id, x, y, frame="utm", width=2.7, height=2.6, ndvi=0.61, seen=T_SEEN, top_seen=False
+):
     return TrackedTree(
         tree_id=tree_id,
         x=x,
@@ -49,6 +51,7 @@ def tracked(tree_id, x, y, frame="utm", width=2.7, height=2.6, ndvi=0.61, seen=T
         first_seen=seen,
         last_seen=seen + 5_123_456_789,
         traits="paper",
+        height_top_seen=top_seen,
     )
 
 
@@ -343,7 +346,9 @@ def test_trees_in_utm_need_the_grid_and_unposed_trees_stay_unplaced():
 def output_trees():
     field_map = [field_tree("M1", E0, N0, "north-1")]
     trees = [
-        tracked(1, E0 + 0.25, N0 - 0.1, width=2.71234, height=2.60049, ndvi=0.612345),
+        tracked(
+            1, E0 + 0.25, N0 - 0.1, width=2.71234, height=2.60049, ndvi=0.612345, top_seen=True
+        ),
         tracked(2, E0 + 10.0, N0, ndvi=None),  # off the map
         tracked(3, 1.0, 2.0, frame="odom"),  # in an outage, no transform yet
     ]
@@ -382,6 +387,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         first,
         last,
         "found",
+        "true",
     ]
     lat, lon = GRID.inverse(E0 + 10.0, N0)
     assert rows[2] == [
@@ -400,6 +406,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         first,
         last,
         "found",
+        "false",
     ]
     assert rows[3] == [
         "3",
@@ -417,6 +424,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         first,
         last,
         "found",
+        "false",
     ]
     assert len(rows) == 4
     assert oct(os.stat(path).st_mode & 0o777) == "0o644"
@@ -445,8 +453,10 @@ def test_trees_geojson(tmp_path):
         "first_seen": "2026-11-22T10:15:30.000Z",
         "last_seen": "2026-11-22T10:15:35.123Z",
         "status": "found",
+        "height_top_seen": True,
     }
     assert off_map["properties"]["field_id"] is None and off_map["properties"]["ndvi"] is None
+    assert off_map["properties"]["height_top_seen"] is False
     assert unplaced["geometry"] is None and unplaced["properties"]["easting"] is None
 
 

@@ -78,6 +78,9 @@ class Detection:
     height_m: float
     status: str | None = None  # the replay's `status` column if it has one (found/missing)
     field_id: str | None = None
+    # The replay's `height_top_seen` (None: not in its output): False marks a height that
+    # is a lower bound, the crown's top above the LiDAR's view in every scan.
+    height_top_seen: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -152,6 +155,10 @@ class RowStats:
     height_mean_m: float
     height_sd_m: float
     mape_height: float
+    # Of the found trees, those whose top the replay says it saw, and the height MAPE
+    # over them alone (NaN if none): what the LiDAR's view allowed.
+    top_seen: int = 0
+    mape_height_top_seen: float = math.nan
 
 
 def _ape(estimate: float, truth: float) -> float:
@@ -246,6 +253,7 @@ def row_stats(scores: Iterable[RunScore], rows: Sequence[str]) -> list[RowStats]
         hits = [t for t in trees if t.detection is not None]
         widths = [t.detection.width_m for t in hits]
         heights = [t.detection.height_m for t in hits]
+        seen = [t for t in hits if t.detection.height_top_seen]
         out.append(
             RowStats(
                 row=row,
@@ -259,6 +267,8 @@ def row_stats(scores: Iterable[RunScore], rows: Sequence[str]) -> list[RowStats]
                 height_mean_m=_mean(heights),
                 height_sd_m=_sd(heights),
                 mape_height=_mean([t.height_ape for t in hits]),
+                top_seen=len(seen),
+                mape_height_top_seen=_mean([t.height_ape for t in seen]),
             )
         )
     return out
@@ -348,6 +358,7 @@ def detections_from_trees(trees: Iterable) -> list[Detection]:
             math.nan if t.height_m is None else float(t.height_m),
             getattr(t, "status", None),
             getattr(t, "field_id", None),
+            getattr(t, "height_top_seen", None),
         )
         for t in trees
     ]

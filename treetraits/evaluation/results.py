@@ -55,6 +55,10 @@ class MethodSummary:
     false_positives: int
     position_rmse_m: float
     s_per_scan: float
+    # Heights over the found trees whose top was in view (rows with none left out), and
+    # how many found trees that is: the rest have a height that is a lower bound.
+    worst_row_mape_height_top_seen: float = math.nan
+    heights_top_seen: int = 0
 
 
 def score(evaluation: Evaluation, gate_m: float = DEFAULT_GATE_M) -> list[CaseMethodResult]:
@@ -114,6 +118,10 @@ def summarize(results: list[CaseMethodResult], methods: tuple[str, ...]) -> list
                 false_positives=sum(r.false_positives for r in mine),
                 position_rmse_m=position_rmse([s for r in mine for s in r.scores]),
                 s_per_scan=_mean([r.s_per_scan for r in mine]),
+                worst_row_mape_height_top_seen=_worst(
+                    [row.mape_height_top_seen for row in rows if row.top_seen]
+                ),
+                heights_top_seen=sum(row.top_seen for row in rows),
             )
         )
     return out
@@ -145,6 +153,8 @@ def to_json(evaluation: Evaluation, results: list[CaseMethodResult]) -> dict:
         "false_positives": best.false_positives,
         "position_rmse_m": _round(best.position_rmse_m, 3),
         "s_per_scan": _round(best.s_per_scan, 4),
+        "worst_row_mape_height_top_seen": _round(best.worst_row_mape_height_top_seen),
+        "heights_top_seen": best.heights_top_seen,
         "methods": {
             s.method: {
                 "worst_row_mape_width": _round(s.worst_row_mape_width),
@@ -155,6 +165,8 @@ def to_json(evaluation: Evaluation, results: list[CaseMethodResult]) -> dict:
                 "false_positives": s.false_positives,
                 "position_rmse_m": _round(s.position_rmse_m, 3),
                 "s_per_scan": _round(s.s_per_scan, 4),
+                "worst_row_mape_height_top_seen": _round(s.worst_row_mape_height_top_seen),
+                "heights_top_seen": s.heights_top_seen,
             }
             for s in summaries
         },
@@ -208,6 +220,8 @@ def row_json(case: Case, row: RowStats) -> dict:
         "height_mean_m": _round(row.height_mean_m, 3),
         "height_sd_m": _round(row.height_sd_m, 3),
         "mape_height": _round(row.mape_height),
+        "top_seen": row.top_seen,
+        "mape_height_top_seen": _round(row.mape_height_top_seen),
         "paper_mape_width_ours": paper.width_ours if paper else None,
         "paper_mape_width_rph": paper.width_rph if paper else None,
         "paper_mape_height_ours": paper.height_ours if paper else None,

@@ -1,0 +1,72 @@
+"""Whether a cluster's top was in the LiDAR's view in a scan.
+
+A spinning LiDAR sees nothing above its top beam (+15 deg on a VLP-16, 0.4 m up on a
+Jackal: 3 m is in reach from 9.5 m away only). A crown taller than the top beam reaches
+at its range is cut flat there, and its measured height is a lower bound.
+
+The top of a cluster is *seen* in a scan when the whole cluster lies under the beam just
+above the highest ring that hit it: across every bearing the cluster spans (widened by
+`window_rad`), that beam returned nothing nearer than the cluster's farthest return plus
+`reach_m` (it went on into the sky or onto something behind, farther than the clustering
+joins to the object). A nearer return of that beam means something hid what lies above
+(a neighbour's crown along a hedgerow, a branch, a person) or the object goes on upward:
+not seen. A cluster the sensor's top ring hit has no beam above: not seen.
+
+The whole span, not the top return's bearing alone: along a hedgerow the topmost return
+of a far crown is often on its near flank, where the beam above grazes past, while the
+crown's apex, at another bearing, is hidden by the nearer crowns.
+
+Rings are ordered by elevation (0 = lowest beam, docs/architecture.md); bearings are
+taken from the returns' own x, y in the `lidar` frame, which every source has.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# The sensor's top beam, not the highest that hit something in a scan (over a young
+# grove the top beams may see only sky): every model read has 16 beams
+# (`drivers.velodyne.models`); a cloud with more rings raises it to its highest.
+TOP_RING = 15
+
+
+class BeamsAbove:
+    """One scan's returns by ring, sorted by bearing, for the beam-above test."""
+
+    def __init__(self, points: np.ndarray):
+        ring = points["ring"].astype(np.int64)
+        x = points["x"].astype(float)
+        y = points["y"].astype(float)
+        z = points["z"].astype(float)
+        bearing = np.arctan2(y, x)
+        order = np.lexsort((bearing, ring))
+        self.top_ring = max(TOP_RING, int(ring.max()) if len(ring) else 0)
+        self._bearing = bearing[order]
+        self._range = np.sqrt(x * x + y * y + z * z)[order]
+        self._starts = np.searchsorted(ring[order], np.arange(self.top_ring + 2))
+
+    def top_seen(
+        self, members: np.ndarray, points: np.ndarray, window_rad: float, reach_m: float
+    ) -> bool:
+        """Whether the beam above the cluster `points[members]` (indices into this scan's
+        array) passed over all of it: see the module's docstring."""
+        mine = points[members]
+        x, y, z = (mine[k].astype(float) for k in ("x", "y", "z"))
+        top = int(np.argmax(z))
+        ring = int(mine["ring"].max())  # the cluster's highest beam: the next one up
+        if ring >= self.top_ring:
+            return False
+        # Bearings relative to the top's, so a span across the +-pi seam stays whole.
+        centre = float(np.arctan2(y[top], x[top]))
+        offsets = _wrap(np.arctan2(y, x) - centre)
+        low, high = offsets.min() - window_rad, offsets.max() + window_rad
+        farthest = float(np.sqrt(x * x + y * y + z * z).max())
+        start, end = self._starts[ring + 1], self._starts[ring + 2]
+        above = _wrap(self._bearing[start:end] - centre)
+        inside = (above >= low) & (above <= high)
+        return not bool(np.any(self._range[start:end][inside] <= farthest + reach_m))
+
+
+def _wrap(angles: np.ndarray) -> np.ndarray:
+    """Angles into [-pi, pi)."""
+    return (angles + np.pi) % (2 * np.pi) - np.pi
