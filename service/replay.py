@@ -395,9 +395,16 @@ def format_table(trees: list[Tree]) -> str:
             traits = f"{'missing':>27}"
         else:
             ndvi = f"{t.ndvi:5.2f}" if t.ndvi is not None else f"{'-':>5}"
-            traits = f"{t.width_m:7.2f} {t.height_m:8.2f} {ndvi} {t.observations:4d}"
+            bound = ">" if t.height_top_seen is False else ""
+            height = f"{bound}{t.height_m:.2f}"
+            traits = f"{t.width_m:7.2f} {height:>8} {ndvi} {t.observations:4d}"
         lines.append(
             f"{t.tree_id or '-':>5} {t.field_id or '-':>8} {t.row or '-':>6} {east} {north} "
             f"{traits}"
+        )
+    if any(t.status != "missing" and t.height_top_seen is False for t in trees):
+        lines.append(
+            ">: a lower bound, the crown's top above the LiDAR's top beam in every scan "
+            "(height_top_seen false)"
         )
     return "\n".join(lines)

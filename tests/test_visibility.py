@@ -107,3 +107,17 @@ def test_a_crown_along_a_hedgerow_is_hidden_by_its_neighbours():
     clusters = tree_clusters(*row)
     assert not nearest(clusters, row[2]).top_seen
     assert not nearest(clusters, row[0]).top_seen
+
+
+def test_the_printed_table_marks_a_height_that_is_a_lower_bound():
+    from treetraits.drivers.records import Tree
+    from treetraits.service.replay import format_table
+
+    def tree(tree_id: str, top_seen: bool) -> Tree:
+        return Tree(tree_id, 1.0, 2.0, "11N", 0.0, 0.0, 2.7, 2.55, 0.7, 12, 1, 2,
+                    height_top_seen=top_seen)  # fmt: skip
+
+    lines = format_table([tree("1", False), tree("2", True)]).splitlines()
+    assert lines[2].split()[-3] == ">2.55" and lines[3].split()[-3] == "2.55"
+    assert lines[-1].startswith(">: a lower bound")
+    assert ">" not in format_table([tree("2", True)])
