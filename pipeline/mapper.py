@@ -15,7 +15,7 @@ import numpy as np
 
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
-from treetraits.pipeline.classify import FLOATING, LOW, Votes
+from treetraits.pipeline.classify import FLOATING, LOW, TREE, Votes
 from treetraits.pipeline.config import MapperConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
@@ -98,6 +98,9 @@ class _Tree:
 
 # Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).
 UNCLAIMING = (LOW, FLOATING)
+# Verdicts of things that are not standing objects (posts, people, vehicles, walls):
+# trees, the understorey, crown fragments; the tracker merges these with trees.
+NOT_STANDING = (TREE, *UNCLAIMING)
 
 
 class TreeMapper:
@@ -186,7 +189,10 @@ class TreeMapper:
         view_ids = {
             tr.tree_id for tr, seen in zip(self.tracker.tracks, in_view, strict=True) if seen
         }
-        step = self.tracker.step(measurements, self.T_lidar_base @ base_from_map, in_view, t)
+        standing = np.array([c.verdict not in NOT_STANDING for c in detection.clusters])
+        step = self.tracker.step(
+            measurements, self.T_lidar_base @ base_from_map, in_view, t, standing
+        )
         clock.lap("tracking")
 
         # Traits: each cluster to the tree it went to; then trees merged this scan.
@@ -221,6 +227,7 @@ class TreeMapper:
             self._observe(tree, cluster, traits_from_base, decision.tree_id, centres, outline)
         for kept, absorbed in step.merged:
             self._absorb(kept, absorbed)
+        self._mark_standing({d.tree_id for d in step.decisions})
         merged = step.merged + self._merge_outlines(step.decisions, view_ids)
         alias = dict((absorbed, kept) for kept, absorbed in merged)
         decisions = [
@@ -436,6 +443,7 @@ class TreeMapper:
             if (tree_id in view_ids or tree_id in touched)
             and (centre := tree.traits.centre()) is not None
         }
+        stands = {track.tree_id: track.standing for track in self.tracker.tracks}
         merged = []
         for tree_id in sorted(touched):
             own = centres.get(tree_id)
@@ -444,7 +452,9 @@ class TreeMapper:
             near = [
                 other
                 for other, centre in centres.items()
-                if other != tree_id and float(np.hypot(*(centre - own))) < limit
+                if other != tree_id
+                and float(np.hypot(*(centre - own))) < limit
+                and stands.get(other) == stands.get(tree_id)
             ]
             if not near:
                 continue
@@ -456,6 +466,17 @@ class TreeMapper:
                 centres[keep] = centre
             merged.append((keep, drop))
         return merged
+
+    def _mark_standing(self, tree_ids: set[int]) -> None:
+        """Each touched track stands (a post, a person...) as its votes now say: a tree's
+        track born of a cluster that looked like a post for one scan joins it again."""
+        classify = self.config.detection.classify
+        for track in self.tracker.tracks:
+            if track.tree_id in tree_ids and track.tree_id in self._trees:
+                kind = self._trees[track.tree_id].votes.kind(
+                    classify.min_tree_share, classify.min_tree_share_all
+                )
+                track.standing = kind not in NOT_STANDING
 
     def _absorb(self, kept: int, absorbed: int) -> None:
         gone = self._trees.pop(absorbed, None)

@@ -142,6 +142,9 @@ class Track:
     first_seen: int
     last_seen: int
     scans: ScanSet
+    # A post, a person, a vehicle or a wall (its first cluster's verdict, then its
+    # votes', kept by the mapper): never merged with a tree by distance.
+    standing: bool = False
 
     @property
     def state(self) -> np.ndarray:
@@ -196,10 +199,12 @@ class Tracker:
         sensor_from_map: np.ndarray,
         in_view: np.ndarray,
         t: int,
+        standing: np.ndarray | None = None,
     ) -> StepResult:
         """One scan: `measurements` K x 5 m_k in the map frame (NDVI NaN when unknown),
         `sensor_from_map` the LiDAR frame now, `in_view` one bool per track (who could be
-        seen). Returns one Decision per measurement, in order."""
+        seen), `standing` one bool per measurement (a post, person, vehicle or wall: a
+        tree it starts is `standing`). Returns one Decision per measurement, in order."""
         cfg = self.config
         self._scan += 1
         active = [tr for tr, seen in zip(self.tracks, in_view, strict=True) if seen]
@@ -239,6 +244,7 @@ class Tracker:
                 decisions[index] = Decision(tree_id, "duplicate", p_max[index], entropy[index])
                 continue
             track = self._create(measurements[index], t)
+            track.standing = bool(standing[index]) if standing is not None else False
             decisions[index] = Decision(track.tree_id, "created", p_max[index], entropy[index])
         # Decisions name the trees that remain: a tree started here and merged into an
         # older one at once reads "merged" with the older tree's id.
@@ -314,8 +320,9 @@ class Tracker:
         self.tracks.remove(drop)
 
     def _merge(self, in_view: np.ndarray) -> list[tuple[int, int]]:
-        """Trees in view closer than merge_distance_m (x-y) are one: the older (lower id)
-        keeps its id; the two estimates are fused by their covariances and the tree keeps
+        """Trees in view closer than merge_distance_m (x-y) are one, unless one stands (a
+        post, a person) and the other does not: the older (lower id) keeps its id; the
+        two estimates are fused by their covariances and the tree keeps
         the union of their scans."""
         limit = self.config.merge_distance_m
         if limit <= 0 or len(self.tracks) < 2:
@@ -333,6 +340,8 @@ class Tracker:
             if a in gone or b in gone:
                 continue
             keep, drop = self.tracks[index[a]], self.tracks[index[b]]
+            if keep.standing != drop.standing:
+                continue  # a person beside a crown is not a piece of it
             if float(np.hypot(*(keep.state[:2] - drop.state[:2]))) >= limit:
                 continue  # `keep` took another tree's state above and moved away
             _fold(keep, drop)
