@@ -127,8 +127,9 @@ def match(trees: list[TrackedTree], truth: list[TreeTruth], radius: float = 1.5)
 
 def assert_each_found_once(trees, truth, reach=None):
     """No strays; every true tree found exactly once (those farther than `reach` m from
-    the path's end, never in the crop box, at most once)."""
-    found, stray = match(trees, truth)
+    the path's end, never in the crop box, at most once). Counted: what the outputs call
+    trees (kind "tree"); a fragment judged a post for a scan is a rejected object."""
+    found, stray = match([t for t in trees if t.kind == "tree"], truth)
     assert stray == []
     for t in truth:
         count = len(found[t.tree_id])

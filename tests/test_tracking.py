@@ -197,6 +197,22 @@ def test_merge_collapses_one_tree_seen_twice():
     assert tr.tracks[0].observations == 2 and tr.tracks[0].last_seen == 2
 
 
+def test_a_standing_object_beside_a_tree_is_not_merged_into_it():
+    """A person 0.9 m from a tree's centre (a cluster judged a post or person: standing)
+    starts a track the distance merge leaves apart; a second standing cluster beside the
+    person's track merges with it as before."""
+    tr = tracker()
+    step(tr, [[5.0, 2.0, 1.0, 300, 0.7]], t=1)
+    person = np.array([[5.9, 2.0, 1.0, 300, 0.7]])
+    result = tr.step(person, I4, np.ones(1, dtype=bool), 2, np.array([True]))
+    assert result.decisions[0].outcome == "created" and result.merged == []
+    assert [t.standing for t in tr.tracks] == [False, True]
+    again = np.array([[6.6, 2.0, 1.0, 300, 0.7]])
+    result = tr.step(again, I4, np.ones(2, dtype=bool), 3, np.array([True]))
+    assert result.merged == [(2, 3)] or result.decisions[0].tree_id == 2
+    assert len(tr.tracks) == 2
+
+
 def test_a_merge_counts_a_scan_both_trees_were_seen_in_once():
     """Two pieces of one crown tracked apart in the same scans, then merged: the tree was
     seen in those scans once each (the paper's count would add the two)."""
