@@ -78,7 +78,7 @@ class Cluster:
     ground_z: float  # ground height under the centroid, base frame
     shape: Shape  # what the tree rules read (`pipeline.classify`)
     verdict: str  # "tree" or the reason it is not one (`classify.REASONS`)
-    # The beam above its topmost return passed over it (`pipeline.visibility`): its
+    # The beam above its highest ring passed over all of it (`pipeline.visibility`): its
     # height in this scan is its top, not the top beam's reach.
     top_seen: bool = False
 
