@@ -513,9 +513,9 @@ class _Centres:
         ).reshape(-1, 2)
 
     def nearest_is(self, xy: np.ndarray, tree_id: int) -> np.ndarray:
-        """Points nearer (x-y) to this tree's centre than to any other tree's: a cluster
-        that took in a piece of a neighbour's crown gives the neighbour's part back (a
-        Voronoi cut between the trees), so it never widens this tree's accumulated cloud."""
+        """Points nearer (x-y) to this tree's centre than to any other claiming object's:
+        a cluster that took in a piece of a neighbour's crown, a post or a person gives it
+        back (a Voronoi cut), so it widens neither this tree's traits nor its outline."""
         own = self.xy[np.flatnonzero(self.ids == tree_id)[0]]
         reach = float(np.sqrt(((xy - own) ** 2).sum(axis=1).max())) if len(xy) else 0.0
         gap = self.xy - own

@@ -4,13 +4,14 @@
 the farthest pair in each, both "keep the maximum" over scans.
 
 `robust` (ours): each tree's returns accumulated in the world frame over scans on a
-bounded voxel grid, counting the scans that hit each cell; width and height are
-measured on the cells seen in several scans. A stray return (mixed pixel, dust, a leaf
-blown out) moves a maximum for good but is seen once; the accumulated cloud joins the
-views of every side the robot passed, where one scan sees only its near half; a piece of
-a neighbour's crown is cut off by the mapper (Voronoi cut between tracked trees) before
-it is added. Percentiles were tried first and cut real crown: the crown outline is
-sampled thinly (grazing rays), so its last percent is real (docs/pipeline.md).
+bounded voxel grid, counting the scans that hit each cell; width and height are measured
+on the cells seen in several scans. A stray return (mixed pixel, dust, a leaf blown out)
+moves a maximum for good but is seen once; the accumulated cloud joins the views of
+every side the robot passed, where one scan sees only its near half; a piece of a
+neighbour's crown is cut off by the mapper (Voronoi cut between tracked objects) before
+it is added (and before the paper's width and height are measured). Percentiles were
+tried first and cut real crown: the crown outline is sampled thinly (grazing rays), so
+its last percent is real (docs/pipeline.md).
 
 The definitions match `sim.orchard.measure_truth`: height = top of the tree above the
 ground at the tree, width = the largest horizontal distance between two of its points.
