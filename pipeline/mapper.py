@@ -197,15 +197,13 @@ class TreeMapper:
 
         # Traits: each cluster to the tree it went to; then trees merged this scan.
         traits_from_base = self._traits_from_map @ map_from_base
-        classify = self.config.detection.classify
         centres = _Centres(
             self.tracker.tracks,
             self._traits_from_map,
             {
                 tree_id
                 for tree_id, tree in self._trees.items()
-                if tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all)
-                not in UNCLAIMING
+                if self._kind(tree) not in UNCLAIMING
             },
         )
         # World points for the outline: not while turning fast; and for the paper's traits
@@ -283,7 +281,6 @@ class TreeMapper:
         return sorted(out, key=lambda tree: tree.tree_id)
 
     def _tracked(self, track, back: np.ndarray) -> TrackedTree:
-        classify = self.config.detection.classify
         tree = self._trees[track.tree_id]
         position = track.state[:3]
         centre = tree.traits.centre()
@@ -304,7 +301,7 @@ class TreeMapper:
             first_seen=track.first_seen,
             last_seen=track.last_seen,
             traits=tree.traits.method,
-            kind=tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all),
+            kind=self._kind(tree),
             height_top_seen=tree.top_seen,
         )
 
@@ -470,13 +467,14 @@ class TreeMapper:
     def _mark_standing(self, tree_ids: set[int]) -> None:
         """Each touched track stands (a post, a person...) as its votes now say: a tree's
         track born of a cluster that looked like a post for one scan joins it again."""
-        classify = self.config.detection.classify
         for track in self.tracker.tracks:
             if track.tree_id in tree_ids and track.tree_id in self._trees:
-                kind = self._trees[track.tree_id].votes.kind(
-                    classify.min_tree_share, classify.min_tree_share_all
-                )
-                track.standing = kind not in NOT_STANDING
+                track.standing = self._kind(self._trees[track.tree_id]) not in NOT_STANDING
+
+    def _kind(self, tree: _Tree) -> str:
+        """ "tree", or why not, by the majority of its scans' verdicts."""
+        classify = self.config.detection.classify
+        return tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all)
 
     def _absorb(self, kept: int, absorbed: int) -> None:
         gone = self._trees.pop(absorbed, None)

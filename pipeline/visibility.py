@@ -31,7 +31,7 @@ TOP_RING = 15
 
 
 class BeamsAbove:
-    """One scan's returns by ring, sorted by bearing, for the beam-above test."""
+    """One scan's returns grouped by ring, for the beam-above test."""
 
     def __init__(self, points: np.ndarray):
         ring = points["ring"].astype(np.int64)
@@ -39,7 +39,7 @@ class BeamsAbove:
         y = points["y"].astype(float)
         z = points["z"].astype(float)
         bearing = np.arctan2(y, x)
-        order = np.lexsort((bearing, ring))
+        order = np.argsort(ring, kind="stable")
         self.top_ring = max(TOP_RING, int(ring.max()) if len(ring) else 0)
         self._bearing = bearing[order]
         self._range = np.sqrt(x * x + y * y + z * z)[order]
