@@ -427,19 +427,22 @@ class TreeMapper:
         merge_distance_m) are one tree seen as two: a crown wider than the association
         gate, seen from both lanes, has its returns' centroids (the Kalman states) a crown
         apart on either side, while each side's outline is centred on the trunk. The older
-        tree keeps its id, as in the tracker's merge."""
+        tree keeps its id, as in the tracker's merge. A tree with no outline yet (no cell
+        hit in `min_hits` scans: a sparse piece of a crown's far side, seen through it in
+        a few scans far apart) is where its track is, as it is reported."""
         limit = self.config.tracking.merge_distance_m
         touched = {d.tree_id for d in decisions if d.outcome != "duplicate"}
         if limit <= 0 or not touched:
             return []
         # Candidates: the trees this scan touched and those in view before it (a tree out
         # of view is not beside a touched one): the cost stays with the trees around.
-        centres = {
-            tree_id: centre
-            for tree_id, tree in self._trees.items()
-            if (tree_id in view_ids or tree_id in touched)
-            and (centre := tree.traits.centre()) is not None
-        }
+        rotation, shift = self._traits_from_map[:2, :3], self._traits_from_map[:2, 3]
+        states = {track.tree_id: track.state[:3] for track in self.tracker.tracks}
+        centres = {}
+        for tree_id, tree in self._trees.items():
+            if (tree_id in view_ids or tree_id in touched) and tree_id in states:
+                centre = tree.traits.centre()
+                centres[tree_id] = rotation @ states[tree_id] + shift if centre is None else centre
         stands = {track.tree_id: track.standing for track in self.tracker.tracks}
         merged = []
         for tree_id in sorted(touched):
