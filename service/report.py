@@ -41,6 +41,9 @@ class MapTree:
     ndvi: float | None
     status: str  # found or missing
     width_change: float | None = None  # m per 30 days (season)
+    # False: the crown's top was above the LiDAR's view in every scan, so the height is a
+    # lower bound; None where the store does not say (a season, an older run).
+    height_top_seen: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -96,13 +99,15 @@ def _run_data(store: Path, run_dir: Path) -> ReportData:
         if not {"run", "trees"} <= tables:
             raise SourceError(f"{store}: not a run's store (no run or trees table)")
         facts = dict(db.execute("SELECT key, value FROM run").fetchall())
+        columns = {r[1] for r in db.execute("PRAGMA table_info(trees)")}
+        top_seen = "height_top_seen" if "height_top_seen" in columns else "NULL"  # older runs
         rows = db.execute(
-            "SELECT tree_id, row, easting, northing, width_m, height_m, ndvi, status "
-            "FROM trees WHERE easting IS NOT NULL ORDER BY tree_id"
+            "SELECT tree_id, row, easting, northing, width_m, height_m, ndvi, status, "
+            f"{top_seen} FROM trees WHERE easting IS NOT NULL ORDER BY tree_id"
         ).fetchall()
     finally:
         db.close()
-    trees = [MapTree(*r) for r in rows]
+    trees = [MapTree(*r[:8], height_top_seen=None if r[8] is None else bool(r[8])) for r in rows]
     path = _json_list(facts.get("path"))
     shown = (
         "input",
@@ -422,11 +427,16 @@ def render_html(data: ReportData, colour: str = "height") -> str:
         + _table(
             ["tree", "row", "status", "width (m)", "height (m)", "NDVI"],
             [
-                [t.tree_id, t.row or "-", t.status, _f(t.width_m), _f(t.height_m), _f(t.ndvi)]
+                [t.tree_id, t.row or "-", t.status, _f(t.width_m), _height(t), _f(t.ndvi)]
                 for t in data.trees
             ],
         )
     )
+    if any(t.height_top_seen is False for t in data.trees):
+        parts.append(
+            "<p><small>&gt;2.55: a lower bound; the crown's top was above the LiDAR's "
+            "view in every scan.</small></p>"
+        )
     parts.append(f"<p><small>source: {e(data.source)}</small></p></body></html>")
     return "\n".join(parts) + "\n"
 
@@ -449,3 +459,9 @@ def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
 
 def _f(value: float | None, digits: int = 2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _height(tree: MapTree) -> str:
+    """The height, marked ">" where it is a lower bound (as `treetraits replay` prints it)."""
+    text = _f(tree.height_m)
+    return f">{text}" if tree.height_top_seen is False and tree.height_m is not None else text

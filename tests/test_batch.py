@@ -9,6 +9,7 @@ import base64
 import io
 import json
 import os
+import re
 import shutil
 import socket
 import sqlite3
@@ -191,6 +192,19 @@ def test_a_run_report_and_a_bad_source(batch, tmp_path, capsys):
     parser = _Page()
     parser.feed(page.read_text())
     assert len(parser.images) == 2 and "Growth" not in parser.headings
+    # Heights whose top the LiDAR never saw are shown as lower bounds, as the store says.
+    with sqlite3.connect(Path(run_dir) / "traits.sqlite") as db:
+        flags = dict(
+            db.execute("SELECT tree_id, height_top_seen FROM trees WHERE status = 'found'")
+        )
+    text = page.read_text()
+    bounded = [tree_id for tree_id, seen in flags.items() if seen == 0]
+    assert bounded  # a 10 m drive into a 2x2 block: no top in view (measured: 4 of 4)
+    for tree_id, seen in flags.items():
+        row = rf"<tr><td>{tree_id}</td><td>[^<]*</td><td>found</td><td>[^<]*</td><td>([^<]*)<"
+        cell = re.search(row, text)
+        assert cell.group(1).startswith("&gt;") == (seen == 0), (tree_id, cell.group(1))
+    assert "a lower bound" in text
     assert main(["report", str(tmp_path), "--out", str(tmp_path / "x.html")]) == 2
     assert "no traits.sqlite" in capsys.readouterr().err
     assert not (tmp_path / "x.html").exists()
