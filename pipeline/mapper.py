@@ -429,7 +429,8 @@ class TreeMapper:
         apart on either side, while each side's outline is centred on the trunk. The older
         tree keeps its id, as in the tracker's merge. A tree with no outline yet (no cell
         hit in `min_hits` scans: a sparse piece of a crown's far side, seen through it in
-        a few scans far apart) is where its track is, as it is reported."""
+        a few scans far apart) is where its track is, as it is reported; not the
+        understorey's (never outlined): a weed under a crown is no part of the tree."""
         limit = self.config.tracking.merge_distance_m
         touched = {d.tree_id for d in decisions if d.outcome != "duplicate"}
         if limit <= 0 or not touched:
@@ -441,8 +442,10 @@ class TreeMapper:
         centres = {}
         for tree_id, tree in self._trees.items():
             if (tree_id in view_ids or tree_id in touched) and tree_id in states:
-                centre = tree.traits.centre()
-                centres[tree_id] = rotation @ states[tree_id] + shift if centre is None else centre
+                if (centre := tree.traits.centre()) is not None:
+                    centres[tree_id] = centre
+                elif self._kind(tree) not in UNCLAIMING:
+                    centres[tree_id] = rotation @ states[tree_id] + shift
         stands = {track.tree_id: track.standing for track in self.tracker.tracks}
         merged = []
         for tree_id in sorted(touched):
