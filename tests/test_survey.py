@@ -5,6 +5,7 @@ the recording's frames, on a simulated survey."""
 
 from __future__ import annotations
 
+import itertools
 import statistics
 
 import numpy as np
@@ -127,3 +128,41 @@ def test_a_robot_already_moving_on_a_slope_gets_its_pitch_from_the_first_samples
             errors.append(abs(attitude[1] - pitch))
     assert len(errors) > 140
     assert np.degrees(max(errors)) < 1.0
+
+
+def backlogged(kept, topics, gaps, hold_ns=600_000_000):
+    """The messages as a loaded host reads them: those of `topics` logged in each gap
+    (start, offset from the first message) held and all read at its end, stamped in the
+    same instant, as the service's reader threads stamped them (docs/service.md)."""
+    t0 = kept[0][2]
+    out = []
+    for topic, data, log_time, publish_time in kept:
+        for start in gaps:
+            if topic in topics and t0 + start <= log_time < t0 + start + hold_ns:
+                log_time = t0 + start + hold_ns
+        out.append((topic, data, log_time, publish_time))
+    return sorted(out, key=lambda m: m[2])  # stable: each stream keeps its order
+
+
+def test_wheels_and_gnss_read_in_backlogs_give_the_poses_read_on_time(survey):
+    """The MCU's bytes and the receiver's sentences held 600 ms twice, then read in a
+    burst (what a loaded host did to the live run): each wheel sample and IMU sample is
+    timed by its header stamp, each GNSS epoch by its UTC, and the fixes wait for the
+    wheels, so every scan gets the pose it gets when they come on time."""
+    kept, calibration = messages(survey)
+    late = backlogged(kept, (rec.WHEELS_JACKAL, rec.GNSS_NMEA), gaps=(4_000_000_000, 9_000_000_000))
+    wheel_times = [m[2] for m in late if m[0] == rec.WHEELS_JACKAL]
+    assert max(b - a for a, b in itertools.pairwise(wheel_times)) >= 590_000_000
+
+    def poses(messages):
+        processor = make_processor(ServiceConfig(), calibration)
+        out = []
+        for message in messages:
+            out.extend(processor.feed(*message))
+        out.extend(processor.finish())
+        assert processor.stats.scans_without_pose == 0
+        return {o.scan.t_host: (o.pose.x, o.pose.y, o.pose.yaw, o.pose.pitch) for o in out}
+
+    on_time, backlog = poses(kept), poses(late)
+    assert len(on_time) > 120
+    assert backlog == on_time
