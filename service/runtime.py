@@ -38,6 +38,7 @@ from treetraits import __version__
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.times import NmeaClock
+from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE, packet_period_ns
 from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.errors import ConfigError, TreetraitsError
 from treetraits.service.config import ServiceConfig, dump_config
@@ -214,11 +215,11 @@ class Service:
         if not self.cfg.lidar.enabled:  # no packet will come to start the video
             self._play_videos()
 
-    def _play_videos(self) -> None:
+    def _play_videos(self, start_ns: int | None = None) -> None:
         self._video_playing = True
         for worker in self.workers:
             if isinstance(worker, CameraWorker):
-                worker.play_video()
+                worker.play_video(start_ns)
 
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
         from treetraits.service.replay import make_processor
@@ -306,7 +307,7 @@ class Service:
     def _handle(self, m: Message) -> None:
         self.counters.messages += 1
         if not self._video_playing and m.topic == rec.LIDAR_PACKETS:
-            self._play_videos()
+            self._play_videos(first_firing_ns(m.data, m.log_time))
         if self.recorder is not None:
             self._record(m)
         if self.processor is not None:
@@ -507,3 +508,11 @@ class Service:
             self.writer.set_facts(facts)
         except OutputError as exc:
             log.error("%s", exc)
+
+
+def first_firing_ns(packet: bytes, t_host: int) -> int:
+    """When a VLP-16 data packet read at `t_host` began: its firings span one packet
+    period (by its return-mode byte) before it was sent; `t_host` for anything else."""
+    if len(packet) != DATA_PACKET_SIZE:
+        return t_host
+    return t_host - packet_period_ns(packet[DATA_PACKET_SIZE - 2])

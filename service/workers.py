@@ -382,9 +382,11 @@ class PacedVideo:
     the host clock when it is handed over (t_host) and when it fell due (t_capture: the
     same unless the reader fell behind). For tests and demos, where
     a survey is played into the service: the video starts with `play()`, which the service
-    calls at its first LiDAR packet, so frame k comes k frame periods after the survey's
-    first scan began, as the survey's own frames did (within a period), not k periods
-    after the service started."""
+    calls at its first LiDAR packet with the time that packet's first firing was read at,
+    so frame k comes k frame periods after the survey's first scan began, as the survey's
+    own frames did, not k periods after the service started (nor after the loop got to the
+    packet: 10 ms later on a loaded host, which moved every frame 10 ms later than the
+    survey's)."""
 
     is_live = True
 
@@ -398,10 +400,13 @@ class PacedVideo:
         self._playing = threading.Event()
         self.ended = False
 
-    def play(self) -> None:
-        """Start handing frames over (now: the first frame at once). Idempotent."""
+    def play(self, start_ns: int | None = None) -> None:
+        """Start handing frames over, the first due at `start_ns` (host clock, ns; now when
+        None or later than now). Idempotent."""
         if not self._playing.is_set():
-            self._next = time.monotonic()
+            now = time.monotonic()
+            late_s = 0.0 if start_ns is None else max(0, time.time_ns() - start_ns) / 1e9
+            self._next = now - late_s
             self._playing.set()
 
     def read(self, timeout: float) -> tuple[bytes, int, int] | None:
@@ -462,12 +467,12 @@ class CameraWorker(Worker):
 
         return UvcCamera(self.cfg.device, CameraSettings(wait_for_device=True))
 
-    def play_video(self) -> None:
+    def play_video(self, start_ns: int | None = None) -> None:
         """Start a video file played as the camera (`PacedVideo.play`); nothing for a
         real camera."""
         self._play = True
         if isinstance(self.source, PacedVideo):
-            self.source.play()
+            self.source.play(start_ns)
 
     def _receive(self, source) -> Message | None:
         if isinstance(source, PacedVideo):
