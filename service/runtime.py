@@ -38,7 +38,6 @@ from treetraits import __version__
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.times import NmeaClock
-from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE, packet_period_ns
 from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.errors import ConfigError, TreetraitsError
 from treetraits.service.config import ServiceConfig, dump_config
@@ -46,6 +45,7 @@ from treetraits.service.health import assess, status_line
 from treetraits.service.notify import Notifier
 from treetraits.service.outputs import OutputError, RunWriter
 from treetraits.service.preflight import check_start
+from treetraits.service.survey_start import SurveyStart
 from treetraits.service.workers import (
     BoundedQueue,
     BridgeWorker,
@@ -140,6 +140,7 @@ class Service:
         # A video file played as the camera starts with the first LiDAR packet: a survey
         # played into the service then gets frames where its own were (PacedVideo).
         self._video_playing = False
+        self._survey_start = SurveyStart()  # when the survey's first firing was, for it
 
     # --- start ---------------------------------------------------------------------------
 
@@ -214,6 +215,11 @@ class Service:
             worker.start()
         if not self.cfg.lidar.enabled:  # no packet will come to start the video
             self._play_videos()
+
+    def _anchor_videos(self, first_firing_ns: int) -> None:
+        for worker in self.workers:
+            if isinstance(worker, CameraWorker):
+                worker.anchor_video(first_firing_ns)
 
     def _play_videos(self, start_ns: int | None = None) -> None:
         self._video_playing = True
@@ -306,8 +312,11 @@ class Service:
 
     def _handle(self, m: Message) -> None:
         self.counters.messages += 1
-        if not self._video_playing and m.topic == rec.LIDAR_PACKETS:
-            self._play_videos(first_firing_ns(m.data, m.log_time))
+        if m.topic == rec.LIDAR_PACKETS and self._survey_start.add(m.data, m.log_time):
+            start = self._survey_start.first_firing_ns
+            self._anchor_videos(start)
+            if not self._video_playing:
+                self._play_videos(start)
         if self.recorder is not None:
             self._record(m)
         if self.processor is not None:
@@ -508,11 +517,3 @@ class Service:
             self.writer.set_facts(facts)
         except OutputError as exc:
             log.error("%s", exc)
-
-
-def first_firing_ns(packet: bytes, t_host: int) -> int:
-    """When a VLP-16 data packet read at `t_host` began: its firings span one packet
-    period (by its return-mode byte) before it was sent; `t_host` for anything else."""
-    if len(packet) != DATA_PACKET_SIZE:
-        return t_host
-    return t_host - packet_period_ns(packet[DATA_PACKET_SIZE - 2])

@@ -382,11 +382,12 @@ class PacedVideo:
     the host clock when it is handed over (t_host) and when it fell due (t_capture: the
     same unless the reader fell behind). For tests and demos, where
     a survey is played into the service: the video starts with `play()`, which the service
-    calls at its first LiDAR packet with the time that packet's first firing was read at,
-    so frame k comes k frame periods after the survey's first scan began, as the survey's
-    own frames did, not k periods after the service started (nor after the loop got to the
-    packet: 10 ms later on a loaded host, which moved every frame 10 ms later than the
-    survey's)."""
+    calls at its first LiDAR packet with the time of that packet's first firing, so frame k
+    comes k frame periods after the survey's first scan began, as the survey's own frames
+    did, not k periods after the service started (nor after the loop got to the packet:
+    10 ms later on a loaded host, which moved every frame 10 ms later than the survey's).
+    Its stamp (t_capture) is k periods after `anchor_ns`, the first firing as the least
+    delay of the survey's first packets puts it (`survey_start`), when the service set it."""
 
     is_live = True
 
@@ -399,6 +400,10 @@ class PacedVideo:
         self._wake = threading.Event()
         self._playing = threading.Event()
         self.ended = False
+        self._handed = 0  # frames handed over
+        # The survey's first firing on the host clock (`survey_start`), set by the service
+        # as its packets come: frame k is stamped captured k periods after it.
+        self.anchor_ns: int | None = None
 
     def play(self, start_ns: int | None = None) -> None:
         """Start handing frames over, the first due at `start_ns` (host clock, ns; now when
@@ -433,6 +438,9 @@ class PacedVideo:
         # each stamped when it was due, so the frames stay on the survey's timeline.
         due, self._next = self._next, self._next + self._period
         now = time.time_ns()
+        k, self._handed = self._handed, self._handed + 1
+        if (anchor := self.anchor_ns) is not None:
+            return frame.jpeg, now, min(now, anchor + round(k * self._period * 1e9))
         return frame.jpeg, now, now - max(0, round((time.monotonic() - due) * 1e9))
 
     def close(self) -> None:
@@ -466,6 +474,11 @@ class CameraWorker(Worker):
         from treetraits.drivers.camera.live import UvcCamera
 
         return UvcCamera(self.cfg.device, CameraSettings(wait_for_device=True))
+
+    def anchor_video(self, first_firing_ns: int) -> None:
+        """Stamp a video file's frames from the survey's first firing (`PacedVideo`)."""
+        if isinstance(self.source, PacedVideo):
+            self.source.anchor_ns = first_firing_ns
 
     def play_video(self, start_ns: int | None = None) -> None:
         """Start a video file played as the camera (`PacedVideo.play`); nothing for a
