@@ -319,14 +319,18 @@ class SurveyProcessor:
         pose = self.localizer.pose_at(t)
         if pose is not None:
             return pose
-        # Seen before the first fix: carry the odometry pose into utm at the datum.
+        # Seen before the first fix: carry the odometry pose into utm at the datum, as
+        # uncertain as the datum (a heading still unknown there is unknown here too:
+        # whether a scan falls just before or just after the first fix must not decide it).
         odom = self.localizer.pose_at(t, "odom")
-        transform = self.localizer.utm_from_odom(self.localizer.first_utm_time)
-        if odom is None or transform is None:
+        first = self.localizer.first_utm_time
+        transform = self.localizer.utm_from_odom(first)
+        datum = self.localizer.pose_at(first) if first is not None else None
+        if odom is None or transform is None or datum is None:
             return None
         x, y, _ = transform @ np.array([odom.x, odom.y, 1.0])
         yaw = odom.yaw + math.atan2(transform[1, 0], transform[0, 0])
-        return Pose(t, float(x), float(y), wrap_angle(yaw), odom.covariance, "utm")
+        return Pose(t, float(x), float(y), wrap_angle(yaw), datum.covariance, "utm")
 
     def _with_attitude(self, pose: Pose | None) -> Pose | None:
         if pose is None:

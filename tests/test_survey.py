@@ -166,3 +166,19 @@ def test_wheels_and_gnss_read_in_backlogs_give_the_poses_read_on_time(survey):
     on_time, backlog = poses(kept), poses(late)
     assert len(on_time) > 120
     assert backlog == on_time
+
+
+def test_a_scan_before_the_first_fix_is_as_uncertain_as_the_datum(survey):
+    """Carried into utm at the datum, a pose seen before the first fix has the datum's
+    covariance, not the zero of odometry: a scan a few ms before the first fix was
+    mapped with a heading still unknown (the live run's first scan, T2 7 % wider), where
+    one a few ms after it was left out."""
+    processor, _, _ = run(survey)
+    first = processor.localizer.first_utm_time
+    start = processor.localizer.pose_at(first - 50_000_000, "odom")
+    assert start is not None
+    before = processor.pose_at(start.t)
+    datum = processor.localizer.pose_at(first)
+    assert before.frame == "utm"
+    assert np.array_equal(before.covariance, datum.covariance)
+    assert datum.covariance[0, 0] > 0
