@@ -60,7 +60,8 @@ class LidarUtcClock:
         self.stats = LidarClockStats()
         self._locked_at: int | None = None  # t_host of the last locked position packet
         self._utc_ref: tuple[int, int] | None = None  # (UTC, t_host) of that packet
-        # The ToH on UTC does not jump: no restart bound.
+        # No restart bound (as before): UTC does not jump; a host clock stepped back is
+        # followed at once (a smaller delay), one stepped forward once the window turns over.
         self._offset = LeastDelayOffset(OFFSET_WINDOW_NS)
 
     def add_telemetry(self, telemetry: Telemetry) -> None:
