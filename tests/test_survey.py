@@ -182,3 +182,35 @@ def test_a_scan_before_the_first_fix_is_as_uncertain_as_the_datum(survey):
     assert before.frame == "utm"
     assert np.array_equal(before.covariance, datum.covariance)
     assert datum.covariance[0, 0] > 0
+
+
+def test_encoder_board_ticks_read_in_a_backlog_are_timed_by_the_board_clock():
+    """The retrofit encoder board stamps each TICKS frame with its own clock (us since its
+    boot): 600 ms of frames held and read at once give the odometry they give on time."""
+    from dataclasses import replace
+
+    from treetraits.firmware_bridge.retrofit.protocol import encode_ticks
+
+    calibration = load_calibration(DEFAULT_CALIBRATION)
+    calibration = replace(calibration, wheels=replace(calibration.wheels, ticks_per_rev=4096))
+    t0, boot_us = 1_778_000_000_000_000_000, 42_000_000
+    frames = []  # (read on time, bytes): 50 Hz, a left-hand arc
+    for k in range(250):
+        data = encode_ticks(k, boot_us + k * 20_000, left=20 * k, right=26 * k)
+        frames.append((t0 + k * 20_000_000 + 1_500_000, data))
+    held = (t0 + 2_000_000_000, t0 + 2_600_000_000)
+
+    def odometry(late: bool):
+        processor = make_processor(ServiceConfig(), calibration)
+        for read, data in frames:
+            if late and held[0] <= read < held[1]:
+                read = held[1]
+            processor.feed(rec.WHEELS_BRIDGE, data, read, read)
+        return [
+            processor.localizer.pose_at(t, "odom")
+            for t in range(t0 + 100_000_000, t0 + 4_900_000_000, 10_000_000)
+        ]
+
+    on_time, backlog = odometry(False), odometry(True)
+    assert on_time[-1].x > 0.5  # it moved
+    assert [(p.x, p.y, p.yaw) for p in backlog] == [(p.x, p.y, p.yaw) for p in on_time]
