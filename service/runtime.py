@@ -45,6 +45,7 @@ from treetraits.service.health import assess, status_line
 from treetraits.service.notify import Notifier
 from treetraits.service.outputs import OutputError, RunWriter
 from treetraits.service.preflight import check_start
+from treetraits.service.survey_start import SurveyStart
 from treetraits.service.workers import (
     BoundedQueue,
     BridgeWorker,
@@ -139,6 +140,7 @@ class Service:
         # A video file played as the camera starts with the first LiDAR packet: a survey
         # played into the service then gets frames where its own were (PacedVideo).
         self._video_playing = False
+        self._survey_start = SurveyStart()  # when the survey's first firing was, for it
 
     # --- start ---------------------------------------------------------------------------
 
@@ -214,11 +216,16 @@ class Service:
         if not self.cfg.lidar.enabled:  # no packet will come to start the video
             self._play_videos()
 
-    def _play_videos(self) -> None:
+    def _anchor_videos(self, first_firing_ns: int) -> None:
+        for worker in self.workers:
+            if isinstance(worker, CameraWorker):
+                worker.anchor_video(first_firing_ns)
+
+    def _play_videos(self, start_ns: int | None = None) -> None:
         self._video_playing = True
         for worker in self.workers:
             if isinstance(worker, CameraWorker):
-                worker.play_video()
+                worker.play_video(start_ns)
 
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
         from treetraits.service.replay import make_processor
@@ -305,8 +312,11 @@ class Service:
 
     def _handle(self, m: Message) -> None:
         self.counters.messages += 1
-        if not self._video_playing and m.topic == rec.LIDAR_PACKETS:
-            self._play_videos()
+        if m.topic == rec.LIDAR_PACKETS and self._survey_start.add(m.data, m.log_time):
+            start = self._survey_start.first_firing_ns
+            self._anchor_videos(start)
+            if not self._video_playing:
+                self._play_videos(start)
         if self.recorder is not None:
             self._record(m)
         if self.processor is not None:

@@ -6,8 +6,13 @@ recording format, the bytes, `log_time` (host receive time) and `publish_time`. 
 packets become scans, NMEA becomes fixes, Jackal MCU and retrofit encoder board bytes
 become wheel samples, JPEGs wait in a short buffer; the VLP-16's position packets, when
 its GPS input is locked, put scans and GNSS epochs on the host clock by their UTC
-(`lidar_clock`). A scan is processed, with the
-camera frame nearest its middle, as soon as what it gets can no longer change:
+(`lidar_clock`). Serial data is timed by the device's own clock, not by when the host read
+it (`serial_clock`): wheel samples and IMU by the MCU's header stamp (the encoder board's
+clock), GNSS epochs by their UTC, each put on the host clock by its least delay; a GNSS
+fix waits until the wheels have passed the time it completed at, so the localizer gets
+its inputs in time order even when the wheels' bytes came in a backlog. A scan is
+processed, with the camera frame nearest its middle, as soon as what it gets can no
+longer change:
 
 - its pose: the localizer is causal (an input moves the poses from its arrival on, never
   before), so the pose at the scan's middle is final once the pose history holds two
@@ -33,7 +38,7 @@ import numpy as np
 
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
-from treetraits.drivers.gnss.epochs import EpochAssembler
+from treetraits.drivers.gnss.epochs import NS_PER_DAY, EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.drivers.motion import OdometryIntegrator, decode_imu
@@ -49,12 +54,16 @@ from treetraits.pipeline.deskew import deskew_scan
 from treetraits.pipeline.localization import LocalizationConfig, Localizer
 from treetraits.pipeline.localization.attitude import AttitudeFilter, rotation_zyx
 from treetraits.pipeline.localization.lidar_clock import LidarUtcClock
+from treetraits.pipeline.localization.localizer import WHEELS_GONE_NS
+from treetraits.pipeline.localization.serial_clock import SerialClock
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
 
 # The longest a scan waits past its middle (by the newest message) for a settled pose
-# and its frame: the wheels or the receiver gone, a camera running late.
-POSE_WAIT_NS = 300_000_000
+# and its frame: the wheels or the receiver gone, a camera running late. Past the serial
+# backlogs of a loaded host (the wheels' bytes 0.6-0.73 s late on a 2-core machine): a
+# pose that is only late is waited for.
+POSE_WAIT_NS = 1_000_000_000
 # A camera that sent nothing for this long is not waited for (absent, unplugged).
 FRAME_SILENCE_NS = 1_000_000_000
 # Before the first GNSS fix, scans wait this long for one; then the run maps in `odom`
@@ -116,6 +125,14 @@ class SurveyProcessor:
         self._epochs = EpochAssembler()
         self._mcu = JackalProtocol()
         self._bridge = BridgeDecoder()
+        # Device clocks on the host clock (`serial_clock`): the MCU's header stamps (wheels
+        # and IMU share them), the encoder board's clock, the GNSS epochs' UTC.
+        self._mcu_clock = SerialClock.new()
+        self._bridge_clock = SerialClock.new()
+        self._gnss_clock = SerialClock.new()
+        # GNSS fixes waiting for the wheels to pass the time each completed at (placed).
+        self._held_fixes: deque[tuple[int, Fix]] = deque()
+        self._wheels_read: int | None = None  # log_time of the newest wheel sample
         self._odometry = OdometryIntegrator(calibration.wheels.track)
         self._frames: deque[Frame] = deque(maxlen=FRAME_BUFFER)
         self._pending: deque[Scan] = deque()
@@ -151,24 +168,23 @@ class SurveyProcessor:
                     self.stats.nmea_malformed += 1
                     continue
                 if record is not None and (fix := self._epochs.push(record)) is not None:
-                    self._add_fix(fix)
+                    self._hold_fix(fix, getattr(record, "tod_ns", None))
         elif topic == rec.WHEELS_JACKAL:
             for record in self._mcu.receive(data, log_time, log_time / 1e9):
                 if isinstance(record, WheelSample):
-                    self._add_wheels(record)
+                    self._add_wheels(record, self._mcu_clock, log_time)
                 elif isinstance(record, JackalImu):
-                    # On t_host like the wheels (the header stamp is the MCU's clock).
-                    self._add_imu(
-                        record.t_host, record.angular_velocity, record.linear_acceleration
-                    )
+                    # The MCU's clock, like the wheels': placed by the same offset.
+                    t = self._mcu_clock.place(record.t_host, record.stamp_ns)
+                    self._add_imu(t, record.angular_velocity, record.linear_acceleration)
             self._mcu.take_outgoing()  # a recording cannot answer the MCU
         elif topic == rec.WHEELS_BRIDGE:
             for record in self._bridge.push(data, log_time):
                 if isinstance(record, WheelSample):  # ticks: the localizer converts them
-                    self._add_wheels(record)
+                    self._add_wheels(record, self._bridge_clock, log_time)
         elif topic == rec.WHEELS_ODOMETRY:  # format 1.1: a robot's odometry as numbers
             try:
-                self._add_wheels(self._odometry.push(data, log_time))
+                self._add_wheels(self._odometry.push(data, log_time), None, log_time)
             except ParseError:
                 self.stats.motion_malformed += 1
         elif topic == rec.IMU_DATA:  # format 1.1: an IMU as numbers, on t_host like the MCU's
@@ -186,12 +202,14 @@ class SurveyProcessor:
             self.localizer.host_minus_utc = self.lidar_clock.host_minus_utc(log_time)
         else:
             self.stats.unknown_topics += 1
+        self._release_fixes(end_of_input=False)
         return self._ready(end_of_input=False)
 
     def finish(self) -> list[ScanOutcome]:
         """End of input: the last partial scan and GNSS epoch, then every waiting scan."""
         if (fix := self._epochs.flush()) is not None:
-            self._add_fix(fix)
+            self._hold_fix(fix, None)
+        self._release_fixes(end_of_input=True)
         if (scan := self._batcher.flush()) is not None:
             self._add_scan(scan)
         return self._ready(end_of_input=True)
@@ -208,13 +226,43 @@ class SurveyProcessor:
         if (rate := self.attitude.yaw_rate) is not None:
             self.localizer.add_yaw_rate(t_host, rate)
 
-    def _add_wheels(self, sample: WheelSample) -> None:
+    def _add_wheels(self, sample: WheelSample, clock: SerialClock | None, log_time: int) -> None:
+        """A wheel sample, moved to its device time on the host clock when `clock` is given
+        and the sample has one; held fixes it passes go to the localizer first."""
+        if clock is not None and sample.t_device_us is not None:
+            sample = replace(sample, t_host=clock.place(sample.t_host, sample.t_device_us * 1000))
+        while self._held_fixes and self._held_fixes[0][0] <= sample.t_host:
+            self._add_fix(self._held_fixes.popleft()[1])
+        self._wheels_read = log_time
         self.stats.wheel_samples += 1
         self.localizer.add_wheels(sample)
         # The wheels' speed lets the attitude filter take the robot's own acceleration
         # out of the accelerometer, and tells it when the robot stands still.
         if (speed := self.localizer.speed) is not None:
             self.attitude.add_speed(sample.t_host, speed)
+
+    def _hold_fix(self, fix: Fix, closing_tod_ns: int | None) -> None:
+        """A GNSS epoch, on the host clock by its UTC: its `t_host` becomes UTC plus the
+        least arrival delay (an unloaded arrival of its first sentence). It waits until the
+        wheels pass the time it was completed at (the next epoch's first sentence: its time
+        of day tells when), as on an unloaded host, where the fix comes in after them."""
+        if fix.utc_ns is None:
+            self._held_fixes.append((fix.t_host, fix))
+            return
+        placed = self._gnss_clock.place(fix.t_host, fix.utc_ns)
+        completed = placed
+        if closing_tod_ns is not None:
+            completed += (closing_tod_ns - fix.utc_ns) % NS_PER_DAY
+        self._held_fixes.append((completed, replace(fix, t_host=placed)))
+
+    def _release_fixes(self, end_of_input: bool) -> None:
+        """Held fixes go in when the wheels cannot pass them: none yet, silent for
+        WHEELS_GONE_NS (by read time), or the end of input."""
+        wheels_silent = (
+            self._wheels_read is None or self._latest - self._wheels_read > WHEELS_GONE_NS
+        )
+        while self._held_fixes and (end_of_input or wheels_silent):
+            self._add_fix(self._held_fixes.popleft()[1])
 
     def _add_fix(self, fix: Fix) -> None:
         self.stats.fixes += 1
@@ -271,14 +319,18 @@ class SurveyProcessor:
         pose = self.localizer.pose_at(t)
         if pose is not None:
             return pose
-        # Seen before the first fix: carry the odometry pose into utm at the datum.
+        # Seen before the first fix: carry the odometry pose into utm at the datum, as
+        # uncertain as the datum (a heading still unknown there is unknown here too:
+        # whether a scan falls just before or just after the first fix must not decide it).
         odom = self.localizer.pose_at(t, "odom")
-        transform = self.localizer.utm_from_odom(self.localizer.first_utm_time)
-        if odom is None or transform is None:
+        first = self.localizer.first_utm_time
+        transform = self.localizer.utm_from_odom(first)
+        datum = self.localizer.pose_at(first) if first is not None else None
+        if odom is None or transform is None or datum is None:
             return None
         x, y, _ = transform @ np.array([odom.x, odom.y, 1.0])
         yaw = odom.yaw + math.atan2(transform[1, 0], transform[0, 0])
-        return Pose(t, float(x), float(y), wrap_angle(yaw), odom.covariance, "utm")
+        return Pose(t, float(x), float(y), wrap_angle(yaw), datum.covariance, "utm")
 
     def _with_attitude(self, pose: Pose | None) -> Pose | None:
         if pose is None:

@@ -382,9 +382,12 @@ class PacedVideo:
     the host clock when it is handed over (t_host) and when it fell due (t_capture: the
     same unless the reader fell behind). For tests and demos, where
     a survey is played into the service: the video starts with `play()`, which the service
-    calls at its first LiDAR packet, so frame k comes k frame periods after the survey's
-    first scan began, as the survey's own frames did (within a period), not k periods
-    after the service started."""
+    calls at its first LiDAR packet with the time of that packet's first firing, so frame k
+    comes k frame periods after the survey's first scan began, as the survey's own frames
+    did, not k periods after the service started (nor after the loop got to the packet:
+    10 ms later on a loaded host, which moved every frame 10 ms later than the survey's).
+    Its stamp (t_capture) is k periods after `anchor_ns`, the first firing as the least
+    delay of the survey's first packets puts it (`survey_start`), when the service set it."""
 
     is_live = True
 
@@ -397,11 +400,18 @@ class PacedVideo:
         self._wake = threading.Event()
         self._playing = threading.Event()
         self.ended = False
+        self._handed = 0  # frames handed over
+        # The survey's first firing on the host clock (`survey_start`), set by the service
+        # as its packets come: frame k is stamped captured k periods after it.
+        self.anchor_ns: int | None = None
 
-    def play(self) -> None:
-        """Start handing frames over (now: the first frame at once). Idempotent."""
+    def play(self, start_ns: int | None = None) -> None:
+        """Start handing frames over, the first due at `start_ns` (host clock, ns; now when
+        None or later than now). Idempotent."""
         if not self._playing.is_set():
-            self._next = time.monotonic()
+            now = time.monotonic()
+            late_s = 0.0 if start_ns is None else max(0, time.time_ns() - start_ns) / 1e9
+            self._next = now - late_s
             self._playing.set()
 
     def read(self, timeout: float) -> tuple[bytes, int, int] | None:
@@ -428,6 +438,9 @@ class PacedVideo:
         # each stamped when it was due, so the frames stay on the survey's timeline.
         due, self._next = self._next, self._next + self._period
         now = time.time_ns()
+        k, self._handed = self._handed, self._handed + 1
+        if (anchor := self.anchor_ns) is not None:
+            return frame.jpeg, now, min(now, anchor + round(k * self._period * 1e9))
         return frame.jpeg, now, now - max(0, round((time.monotonic() - due) * 1e9))
 
     def close(self) -> None:
@@ -462,12 +475,17 @@ class CameraWorker(Worker):
 
         return UvcCamera(self.cfg.device, CameraSettings(wait_for_device=True))
 
-    def play_video(self) -> None:
+    def anchor_video(self, first_firing_ns: int) -> None:
+        """Stamp a video file's frames from the survey's first firing (`PacedVideo`)."""
+        if isinstance(self.source, PacedVideo):
+            self.source.anchor_ns = first_firing_ns
+
+    def play_video(self, start_ns: int | None = None) -> None:
         """Start a video file played as the camera (`PacedVideo.play`); nothing for a
         real camera."""
         self._play = True
         if isinstance(self.source, PacedVideo):
-            self.source.play()
+            self.source.play(start_ns)
 
     def _receive(self, source) -> Message | None:
         if isinstance(source, PacedVideo):

@@ -7,9 +7,8 @@ Without that input the ToH counts from power-on and says nothing about UTC.
 
 Locked, every packet's ToH is a UTC time, sent within a fraction of a millisecond of it,
 so `t_host - UTC` of each packet is the host clock's offset from UTC plus the packet's
-transport and read delay. The least of these over a short window is the offset (delays
-only add; a window of seconds lets the estimate follow a host clock that drifts or is
-stepped). With it:
+transport and read delay. The least of these over a short window is the offset
+(`least_delay.LeastDelayOffset`). With it:
 
 - a scan is placed at its last firing's UTC on the host clock instead of when its last
   packet was read (a host busy for 50 ms would move a scan at 1 m/s by 5 cm);
@@ -19,7 +18,6 @@ stepped). With it:
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass, replace
 
 from treetraits.drivers.gnss.sentences import RMC, parse_sentence
@@ -29,6 +27,7 @@ from treetraits.drivers.velodyne.models import HOUR_NS
 from treetraits.drivers.velodyne.packet import resolve_hour
 from treetraits.drivers.velodyne.telemetry import PPS_LOCKED, Telemetry
 from treetraits.errors import ParseError
+from treetraits.pipeline.localization.least_delay import LeastDelayOffset
 
 # Position packets come tens of times a second; a sensor that has sent no locked one for
 # this long has lost its GPS input (or its packets are not reaching us): its ToH may
@@ -61,7 +60,9 @@ class LidarUtcClock:
         self.stats = LidarClockStats()
         self._locked_at: int | None = None  # t_host of the last locked position packet
         self._utc_ref: tuple[int, int] | None = None  # (UTC, t_host) of that packet
-        self._samples: deque[tuple[int, int]] = deque()  # (t_host, delay), delay increasing
+        # No restart bound (as before): UTC does not jump; a host clock stepped back is
+        # followed at once (a smaller delay), one stepped forward once the window turns over.
+        self._offset = LeastDelayOffset(OFFSET_WINDOW_NS)
 
     def add_telemetry(self, telemetry: Telemetry) -> None:
         """One position packet: when locked with a valid RMC, it names the hour of the ToH
@@ -75,7 +76,7 @@ class LidarUtcClock:
         self.stats.telemetry_locked += 1
         self._locked_at = telemetry.t_host
         self._utc_ref = (utc, telemetry.t_host)
-        self._add_sample(telemetry.t_host, telemetry.t_host - utc)
+        self._add_sample(telemetry.t_host, utc)
 
     def place(self, scan: Scan) -> Scan:
         """The scan with `t_host` moved to its last firing's UTC on the host clock, when the
@@ -83,7 +84,7 @@ class LidarUtcClock:
         if not self._locked(scan.t_host):
             return scan
         utc_end = self._utc_of(scan.t_end % HOUR_NS, scan.t_host)
-        self._add_sample(scan.t_host, scan.t_host - utc_end)
+        self._add_sample(scan.t_host, utc_end)
         offset = self.host_minus_utc(scan.t_host)
         if offset is None:
             return scan
@@ -93,9 +94,9 @@ class LidarUtcClock:
     def host_minus_utc(self, t_host: int) -> int | None:
         """The host clock's offset from UTC (ns) at `t_host`, None when the sensor is not
         locked (or not since SYNC_HOLD_NS)."""
-        if not self._locked(t_host) or not self._samples:
+        if not self._locked(t_host):
             return None
-        return self._samples[0][1]
+        return self._offset.offset
 
     def _locked(self, t_host: int) -> bool:
         # Either side: position packets may come a little out of order with data packets.
@@ -109,14 +110,8 @@ class LidarUtcClock:
             ns_past_hour % 1000
         )
 
-    def _add_sample(self, t_host: int, delay: int) -> None:
-        # A monotone deque: the front is the least delay of the window.
-        while self._samples and self._samples[-1][1] >= delay:
-            self._samples.pop()
-        self._samples.append((t_host, delay))
-        while self._samples[0][0] < t_host - OFFSET_WINDOW_NS:
-            self._samples.popleft()
-        self.stats.host_minus_utc_ms = self._samples[0][1] / 1e6
+    def _add_sample(self, t_host: int, utc: int) -> None:
+        self.stats.host_minus_utc_ms = self._offset.add(t_host, utc) / 1e6
 
 
 def _rmc_utc(nmea: str | None) -> int | None:

@@ -295,7 +295,15 @@ class Localizer:
         taken as is when the host clock is on UTC (NTP or PPS: the fix arrived within
         `gnss_clock_tolerance_s` of its UTC). Then the arrival delay is the receiver's
         latency, measured (`stats.latency_ms`). Otherwise the arrival less the configured
-        `gnss_latency_s`."""
+        `gnss_latency_s`.
+
+        The service and replay (`service.survey`) pass `t_host` as the epoch's UTC plus the
+        least arrival delay over a few seconds (`serial_clock`): the host clock's offset
+        from UTC plus the receiver's least latency, with the host's read backlogs taken
+        out. So the last case is UTC + least offset - `gnss_latency_s`: the same as the
+        arrival of an epoch that met no queue, without the jitter of one read in a backlog
+        (it is exact when `gnss_latency_s` is the receiver's latency to its first sentence),
+        and `latency_ms` is the receiver's least latency."""
         c = self.config
         if fix.utc_ns is not None:
             placed = fix.utc_ns + (self.host_minus_utc or 0)
