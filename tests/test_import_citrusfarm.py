@@ -198,6 +198,11 @@ def test_a_citrusfarm_shaped_ros1_survey_replays_to_the_twins_trees(tmp_path):
         )
         assert abs(float(near["easting"]) - e) < 0.2 and abs(float(near["northing"]) - n) < 0.2
         assert abs(float(near["width_m"]) - float(tree["width_m"])) < 0.05
-        assert abs(float(near["height_m"]) - float(tree["height_m"])) < 0.15
+        if near["height_top_seen"] == tree["height_top_seen"] == "true":
+            assert abs(float(near["height_m"]) - float(tree["height_m"])) < 0.15
+        else:  # lower bounds: the imported run maps fewer of the first, farthest scans
+            # (no heading until it has moved), which see the highest up a crown: T1 1.78 m
+            # against 1.98 m, its top out of view in both
+            assert float(near["height_m"]) <= float(tree["height_m"]) + 0.15
         assert abs(float(near["ndvi"]) - float(tree["ndvi"])) < 0.1  # frames re-encoded
         assert near["field_id"] == tree["field_id"] != ""
