@@ -211,6 +211,7 @@ class TreeMapper:
         # the cells could not follow the robot and the Kalman state is the better centre.
         steady = self._steady(pose)
         placeable = pose is not None or motion is not None
+        pose_sigma = _position_sigma(pose)
         for cluster, decision in zip(detection.clusters, step.decisions, strict=True):
             if decision.outcome == "duplicate":
                 continue
@@ -222,7 +223,9 @@ class TreeMapper:
                 # drip line's length as its width or a weed's NDVI.
                 continue
             outline = steady and (placeable or isinstance(tree.traits, RobustTraits))
-            self._observe(tree, cluster, traits_from_base, decision.tree_id, centres, outline)
+            self._observe(
+                tree, cluster, traits_from_base, decision.tree_id, centres, outline, pose_sigma
+            )
         for kept, absorbed in step.merged:
             self._absorb(kept, absorbed)
         self._mark_standing({d.tree_id for d in step.decisions})
@@ -401,7 +404,14 @@ class TreeMapper:
         return yaw_rate <= self.config.traits.max_yaw_rate
 
     def _observe(
-        self, tree: _Tree, cluster: Cluster, traits_from_base, tree_id, centres, outline: bool
+        self,
+        tree: _Tree,
+        cluster: Cluster,
+        traits_from_base,
+        tree_id,
+        centres,
+        outline: bool,
+        pose_sigma: float | None,
     ) -> None:
         # A cluster that took in a piece of a neighbour's crown (touching crowns whose
         # trunk was hidden for a few scans) gives it back before anything is measured.
@@ -414,7 +424,7 @@ class TreeMapper:
             # The ground under the cluster, carried into the world with the full attitude.
             foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
             ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
-        tree.traits.observe(points, ring, cluster.ground_z, world_points, ground_world)
+        tree.traits.observe(points, ring, cluster.ground_z, world_points, ground_world, pose_sigma)
         # The cluster's top in view counts for this tree if that top is its own.
         if cluster.top_seen and own[int(np.argmax(cluster.points[:, 2]))]:
             tree.top_seen = True
@@ -492,6 +502,15 @@ class TreeMapper:
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
         tree.top_seen = tree.top_seen or gone.top_seen
+
+
+def _position_sigma(pose: Pose | None) -> float | None:
+    """The pose's position sigma (m, the larger axis of its x-y covariance); None without a
+    pose or in `odom`, where the covariance says nothing of where the world frame is."""
+    if pose is None or pose.frame != "utm":
+        return None
+    block = np.asarray(pose.covariance, dtype=float)[:2, :2]
+    return float(np.sqrt(max(np.linalg.eigvalsh(block).max(), 0.0)))
 
 
 def _resolve(alias: dict[int, int], tree_id: int) -> int:

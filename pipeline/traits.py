@@ -101,12 +101,23 @@ class PaperTraits:
         measured, the smallest of them: the best there is); NaN before any."""
         return self._widths[-1] if self._widths else float("nan")
 
-    def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
+    def observe(
+        self,
+        points_base,
+        ring,
+        ground_z_base,
+        points_world=None,
+        ground_world=None,
+        pose_sigma: float | None = None,
+    ):
         """One cluster of this tree (points in `base`, ground height under it in `base`;
-        and in the world frame for the outline, when the mapper has a steady pose)."""
+        and in the world frame for the outline, when the mapper has a steady pose, whose
+        position sigma is `pose_sigma`)."""
         if len(points_base) == 0:
             return
-        self._outline.observe(points_base, ring, ground_z_base, points_world, ground_world)
+        self._outline.observe(
+            points_base, ring, ground_z_base, points_world, ground_world, pose_sigma
+        )
         # Height: when the ring of the topmost return changes (and on the first sight),
         # register the top's height above the ground; keep the largest.
         top = int(np.argmax(points_base[:, 2]))
@@ -148,7 +159,15 @@ class RobustTraits:
     again as the robot passes, a stray return (a mixed pixel at a crown edge, dust, a
     leaf blown out for a moment) once. Width is then the largest horizontal extent of
     the counted cells, height the top one above the ground. Memory is bounded: past
-    `max_points` cells the grid coarsens (cell x 2, hits summed)."""
+    `max_points` cells the grid coarsens (cell x 2, hits summed).
+
+    Cells are only as well placed as the poses that placed them: returns placed under an
+    RTK float solution sit its error (decimetres) off those placed once it is fixed, and
+    an outline holding both is that much wider, its centre between. So when a scan comes
+    with a pose sigma under half the worst one the outline was placed with (and that worst
+    more than a cell), a finer outline starts beside it, fed only such scans; once it has
+    half as many counted cells as the outline, it replaces it (`_finer`). A tree not seen
+    long enough after the pose got better keeps the outline it has."""
 
     method = "robust"
 
@@ -168,12 +187,33 @@ class RobustTraits:
         self._seen_count = 0
         self._seen_lo = np.full(2, np.inf)
         self._seen_hi = np.full(2, -np.inf)
+        # The largest pose sigma (m) the cells were placed with, and the finer outline
+        # placed only under poses better than half of it (class doc).
+        self._placed_sigma = 0.0
+        self._finer: RobustTraits | None = None
+        # The top of the outlines a finer one replaced (world z): a pose's error is
+        # horizontal, so the heights they saw stand (the top was seen from afar, often
+        # before the pose got better).
+        self._replaced_top = -np.inf
 
-    def observe(self, points_base, ring, ground_z_base, points_world=None, ground_world=None):
+    def observe(
+        self,
+        points_base,
+        ring,
+        ground_z_base,
+        points_world=None,
+        ground_world=None,
+        pose_sigma: float | None = None,
+    ):
         """One cluster of this tree: its returns in the world frame (already cut to this
-        tree where a neighbour is near) and the ground height under it (world z)."""
+        tree where a neighbour is near), the ground height under it (world z) and the
+        position sigma of the pose that placed them (None: not known)."""
         if points_world is None or len(points_world) == 0:
             return
+        if pose_sigma is not None and self._refine(
+            points_base, ring, ground_z_base, points_world, ground_world, pose_sigma
+        ):
+            return  # the finer outline, this scan in it, is the outline now
         points_world = np.asarray(points_world, dtype=float)
         keys, first = np.unique(_voxel_keys(points_world, self.voxel), return_index=True)
         self._pending.append((keys, points_world[first]))  # one hit per cell per scan
@@ -187,8 +227,41 @@ class RobustTraits:
         if self._pending_count > max(len(self._keys), 5000):
             self._consolidate()
 
+    def _refine(self, points_base, ring, ground_z_base, points_world, ground_world, sigma) -> bool:
+        """Feed, start or adopt the finer outline for a scan placed with `sigma`; True when
+        the finer outline, with this scan, replaced this one."""
+        better = self._placed_sigma > self.config.voxel_m and sigma < self._placed_sigma / 2
+        if better:
+            if self._finer is None:
+                self._finer = RobustTraits(self.config)
+            self._finer.observe(points_base, ring, ground_z_base, points_world, ground_world, sigma)
+            self._consolidate()
+            self._finer._consolidate()
+            if 2 * self._finer._seen_count >= max(self._seen_count, 2):
+                self._adopt(self._finer)
+                return True
+        self._placed_sigma = max(self._placed_sigma, sigma)
+        return False
+
+    def _adopt(self, finer: RobustTraits) -> None:
+        """The finer outline's cells replace these; the ground and the top stay (this
+        outline saw the same scans since the finer one started, and those before)."""
+        seen = self._seen()
+        if len(seen):
+            self._replaced_top = max(self._replaced_top, float(seen[:, 2].max()))
+        for name in (
+            "voxel", "_keys", "_hits", "_points", "_pending", "_pending_count",
+            "_seen_count", "_seen_lo", "_seen_hi", "_placed_sigma", "_finer",
+        ):  # fmt: skip
+            setattr(self, name, getattr(finer, name))
+        self._cache = None
+
     def absorb(self, other: RobustTraits) -> None:
-        """Another track of the same tree merged into this one."""
+        """Another track of the same tree merged into this one (a finer outline either had
+        starts again with the next well placed scan)."""
+        self._placed_sigma = max(self._placed_sigma, other._placed_sigma)
+        self._replaced_top = max(self._replaced_top, other._replaced_top)
+        self._finer = None
         other._consolidate()
         points, hits = other.cells()
         keys = _voxel_keys(points, self.voxel)
@@ -265,7 +338,7 @@ class RobustTraits:
                 self._cache = (float("nan"), float("nan"), np.full(2, np.nan))
             else:
                 ground = float(np.median(self._ground)) if self._ground else 0.0
-                height = float(seen[:, 2].max() - ground)
+                height = float(max(seen[:, 2].max(), self._replaced_top) - ground)
                 width, centre = caliper(seen[:, :2], self.config.directions)
                 self._cache = (width, height, centre)
         return self._cache

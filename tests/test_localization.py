@@ -407,3 +407,22 @@ def test_without_wheel_data_course_over_ground_still_gives_the_heading():
     assert localizer.heading_known
     _, heading = errors(localizer, poses, after_s=5.0)
     assert len(heading) > 100 and heading.max() < 3.0
+
+
+def test_a_position_is_reported_no_better_than_the_fixes_it_rests_on():
+    """Fixes of sigma 0.25 m (an RTK float solution) five a second: the filter, taking them
+    as independent, narrows its position to a few centimetres, but a receiver's error
+    wanders for minutes and averaging its fixes cannot beat its own sigma: the reported
+    pose's position sigma is at least the last fix's. Heading and RTK fixed unchanged."""
+    poses = drive([(30, 0.0)])
+    for gnss_sigma in (0.25, 0.02):
+        localizer, _ = run(sensors(poses, np.random.default_rng(5), gnss_sigma=gnss_sigma))
+        filtered = np.sqrt(np.linalg.eigvalsh(localizer._filter.covariance[:2, :2]).max())
+        pose = localizer.pose()
+        reported = np.sqrt(np.linalg.eigvalsh(pose.covariance[:2, :2]).max())
+        # At least the fix's sigma on each axis (the x-y correlation kept: a little more).
+        assert gnss_sigma <= reported <= 1.1 * max(gnss_sigma, filtered)
+        assert min(pose.covariance[0, 0], pose.covariance[1, 1]) >= gnss_sigma**2
+        assert pose.covariance[2, 2] == pytest.approx(localizer._filter.covariance[2, 2])
+        if gnss_sigma == 0.25:
+            assert filtered < 0.1  # what the filter alone would say

@@ -287,3 +287,34 @@ def test_robust_with_rtk_grade_pose_noise():
     for tree_id, (width, height) in errors(mapper).items():
         if passed(tree_id):
             assert abs(width) < 5 and abs(height) < 5, (tree_id, width, height)
+
+
+def test_an_outline_placed_under_a_better_pose_replaces_the_one_placed_under_float():
+    """A crown seen for 6 scans under an RTK float pose (sigma 0.25 m) that put it 0.5 m
+    east, then 6 under a fixed one (0.02 m): the outline of both is 0.5 m wider and centred
+    between; the finer outline started with the first fixed scan replaces it once it has
+    half its counted cells. The height seen under float stands (the error is horizontal)."""
+    rng = np.random.default_rng(3)
+    # Seen from afar under float, the top (3.4 m here); close by under fixed, not.
+    top = np.array([[5.5, 2.0, 3.4]])
+    float_scans = [np.vstack([p + np.array([0.5, 0.0, 0.0]), top]) for p in crown_scans(rng)]
+    fixed_scans = crown_scans(rng)
+
+    def outline(sigmas: tuple[float | None, float | None]) -> RobustTraits:
+        traits = RobustTraits(CONFIG)
+        for scans, sigma in zip((float_scans, fixed_scans), sigmas, strict=True):
+            for points in scans:
+                traits.observe(None, None, 0.0, points, 0.0, sigma)
+        return traits
+
+    mixed = outline((None, None))  # no pose sigma known: every cell counts
+    assert mixed.width == pytest.approx(3.1, rel=0.03)
+    assert mixed.centre()[0] == pytest.approx(5.25, abs=0.1)
+    finer = outline((0.25, 0.02))
+    assert finer.width == pytest.approx(2.6, rel=0.03)
+    assert finer.centre()[0] == pytest.approx(5.0, abs=0.1)
+    assert finer.height == pytest.approx(mixed.height, abs=1e-9)
+    assert finer.height == pytest.approx(3.4, abs=0.06)
+    # Poses a cell or better throughout (RTK fixed, 2-5 cm): nothing to replace.
+    fixed_only = outline((0.05, 0.02))
+    assert fixed_only.width == pytest.approx(mixed.width, abs=1e-9)

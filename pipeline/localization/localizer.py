@@ -94,6 +94,9 @@ class Localizer:
         self._moved = False  # a wheel step seen: `_motion` is measured
         self._rejected_in_a_row = 0
         self._headings_rejected_in_a_row = 0
+        # The variance (m^2) of the last fix used: the least a reported position's can be
+        # (`_reported_covariance`).
+        self._fix_variance = 0.0
         self._t = 0
         # The host clock's offset from UTC where a UTC source measures it (a PPS-locked
         # VLP-16: `lidar_clock.LidarUtcClock`), else None.
@@ -190,6 +193,8 @@ class Localizer:
             verdict = self._update(easting, northing, covariance)
             if heading is not None and verdict.used:
                 self._add_heading(*heading)
+        if verdict.used:
+            self._fix_variance = max(sigma) ** 2
         self._record(fix.t_host)
         return verdict
 
@@ -199,7 +204,7 @@ class Localizer:
         """The latest pose: in `utm` once there is a datum, else in `odom`."""
         if self._filter is not None:
             x, y, yaw = self._filter.state
-            return Pose(self._t, float(x), float(y), float(yaw), self._filter.covariance, "utm")
+            return Pose(self._t, float(x), float(y), float(yaw), self._reported_covariance(), "utm")
         if self._last_wheels is None:
             return None
         x, y, yaw = self._odom
@@ -424,9 +429,21 @@ class Localizer:
             _append(
                 self._utm_history,
                 self._t,
-                (float(x), float(y), float(yaw), self._filter.covariance),
+                (float(x), float(y), float(yaw), self._reported_covariance()),
                 self.config.history_s,
             )
+
+    def _reported_covariance(self) -> np.ndarray:
+        """The filter's covariance with the position's variances no less than the last
+        used fix's. A receiver's error is not white: a float or DGPS solution's wanders
+        for minutes, so fusing ten of its fixes a second brings the position no closer
+        than the receiver's own sigma, though the filter, taking them as independent, says
+        so (0.05 m under a 0.25 m float on the twin). What the poses place (a tree's
+        outline) is then weighed by how well it was placed."""
+        covariance = np.array(self._filter.covariance, dtype=float)
+        for axis in (0, 1):
+            covariance[axis, axis] = max(covariance[axis, axis], self._fix_variance)
+        return covariance
 
 
 def _append(history: _History, t: int, pose: tuple, keep_s: float) -> None:
