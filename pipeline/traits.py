@@ -210,6 +210,11 @@ class RobustTraits:
         position sigma of the pose that placed them (None: not known)."""
         if points_world is None or len(points_world) == 0:
             return
+        if ground_world is not None and math.isfinite(ground_world):
+            self._ground.append(float(ground_world))
+            if len(self._ground) > 400:  # a bounded, recent sample of the ground
+                self._ground = self._ground[-200:]
+        self._cache = None
         if pose_sigma is not None and self._refine(
             points_base, ring, ground_z_base, points_world, ground_world, pose_sigma
         ):
@@ -218,11 +223,6 @@ class RobustTraits:
         keys, first = np.unique(_voxel_keys(points_world, self.voxel), return_index=True)
         self._pending.append((keys, points_world[first]))  # one hit per cell per scan
         self._pending_count += len(keys)
-        if ground_world is not None and math.isfinite(ground_world):
-            self._ground.append(float(ground_world))
-            if len(self._ground) > 400:  # a bounded, recent sample of the ground
-                self._ground = self._ground[-200:]
-        self._cache = None
         # Fold pending cells in once they outnumber the grid: amortised O(n log n).
         if self._pending_count > max(len(self._keys), 5000):
             self._consolidate()
