@@ -110,8 +110,16 @@ class _CorruptRecordError(Exception):
 
 
 # What mcap and zstandard raise on a torn or corrupt file (CRC mismatches are ValueErrors,
-# short fields struct.errors, bad strings UnicodeDecodeErrors).
-_READ_ERRORS = (McapError, ValueError, struct.error, zstandard.ZstdError, _CorruptRecordError)
+# short fields struct.errors, bad strings UnicodeDecodeErrors, a field length past any
+# index, which mcap hands to read(), OverflowErrors).
+_READ_ERRORS = (
+    McapError,
+    ValueError,
+    OverflowError,
+    struct.error,
+    zstandard.ZstdError,
+    _CorruptRecordError,
+)
 
 
 @dataclass(frozen=True, slots=True)

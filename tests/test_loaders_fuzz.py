@@ -17,7 +17,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from tests.conftest import FIXTURES
@@ -338,6 +338,9 @@ SMALL_RECORDING = _small_recording()
 
 @FUZZ
 @given(edits, cuts)
+# Found by this test: 128 written over the top byte of the attachment's data length
+# (2^63 + ...), which mcap hands to read(): an OverflowError, not counted as damage.
+@example(change=[(20168, 0, 128)], cut=None)
 def test_a_damaged_recording_reads_or_is_refused(change, cut):
     """A recording's metadata, attachments and messages, read back from damaged bytes:
     read as far as they go (the damage counted), or a SourceError; nothing else."""
