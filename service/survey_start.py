@@ -13,18 +13,15 @@ ToH plus it.
 
 from __future__ import annotations
 
-import struct
-
 from treetraits.drivers.velodyne import models as m
+from treetraits.drivers.velodyne.packet import view_packets
 from treetraits.pipeline.localization.least_delay import LeastDelayOffset
 
 # Packets over this much of the survey's start give the least delay: at ~750 packets a
 # second, thousands, most of them read without queueing; the estimate is fixed after it,
 # so the frames' stamps do not move during the run.
 ANCHOR_SPAN_NS = 5_000_000_000
-_TOH = struct.Struct("<I")  # microseconds past the hour, at byte 1200 of a data packet
-_TOH_AT = m.DATA_PACKET_SIZE - 6
-_HOUR_US = 3_600_000_000
+_HOUR_US = m.HOUR_NS // 1000
 
 
 class SurveyStart:
@@ -42,7 +39,8 @@ class SurveyStart:
         that is not a data packet)."""
         if len(packet) != m.DATA_PACKET_SIZE:
             return False
-        toh_us = _TOH.unpack_from(packet, _TOH_AT)[0]
+        fields = view_packets(packet)[0]
+        toh_us = int(fields["toh"])  # microseconds past the hour of its first firing
         if self._first is None:
             self._first = (toh_us, t_host)
         elif t_host - self._first[1] > ANCHOR_SPAN_NS:
@@ -50,7 +48,7 @@ class SurveyStart:
         # Sent after its last firing: its ToH (its first firing; past the first packet's,
         # across the hour) plus a packet period.
         since_first_ns = ((toh_us - self._first[0]) % _HOUR_US) * 1000
-        sent = since_first_ns + m.packet_period_ns(packet[m.DATA_PACKET_SIZE - 2])
+        sent = since_first_ns + m.packet_period_ns(int(fields["return_mode"]))
         estimate = self._offset.add(t_host, sent)
         changed, self.first_firing_ns = estimate != self.first_firing_ns, estimate
         return changed
