@@ -448,15 +448,14 @@ class TreeMapper:
         # Candidates: the trees this scan touched and those in view before it (a tree out
         # of view is not beside a touched one): the cost stays with the trees around.
         rotation, shift = self._traits_from_map[:2, :3], self._traits_from_map[:2, 3]
-        states = {track.tree_id: track.state[:3] for track in self.tracker.tracks}
+        tracks = {track.tree_id: track for track in self.tracker.tracks}
         centres = {}
         for tree_id, tree in self._trees.items():
-            if (tree_id in view_ids or tree_id in touched) and tree_id in states:
+            if (tree_id in view_ids or tree_id in touched) and tree_id in tracks:
                 if (centre := tree.traits.centre()) is not None:
                     centres[tree_id] = centre
                 elif self._kind(tree) not in UNCLAIMING:
-                    centres[tree_id] = rotation @ states[tree_id] + shift
-        stands = {track.tree_id: track.standing for track in self.tracker.tracks}
+                    centres[tree_id] = rotation @ tracks[tree_id].state[:3] + shift
         merged = []
         for tree_id in sorted(touched):
             own = centres.get(tree_id)
@@ -467,7 +466,7 @@ class TreeMapper:
                 for other, centre in centres.items()
                 if other != tree_id
                 and float(np.hypot(*(centre - own))) < limit
-                and stands.get(other) == stands.get(tree_id)
+                and tracks[other].standing == tracks[tree_id].standing
             ]
             if not near:
                 continue
