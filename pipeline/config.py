@@ -327,6 +327,25 @@ class TraitsConfig:
     # skid steer's odometry heading is at its worst: on the twin's N path such scans
     # smeared the crowns to 4.5-6.4 m against a true 2.8 m.
     max_yaw_rate: float = 0.2
+    # Where a tree stands is its trunk (a field map's point is the planting spot). When
+    # a trunk was seen under the crown in at least this many scans, and a majority of its
+    # sightings agree within `trunk_agree_m`, the tree's position is their mean
+    # (`mapper.trunk_position`); else the crown outline's centre, which a lobed or
+    # one-sided crown puts decimetres off the trunk. 3: a weed clump or a neighbour's
+    # trunk taken for it in a scan or two does not move a tree. 0: never.
+    trunk_min_scans: int = 3
+    # Sightings of one trunk agree within this: its axis is found within a few cm
+    # (the LiDAR's range noise; the radius correction of `detection.BandBlob.axis`),
+    # plus the pose's error between the scans (RTK: cm; float: decimetres over minutes).
+    # 0.25 m: a trunk's own width, well under a tree spacing.
+    trunk_agree_m: float = 0.25
+    # A trunk stands under its crown's middle: the outline's centre of a round crown is
+    # within a tenth of the width of its trunk, a lobed one's (lobes up to half a radius
+    # off-centre) up to 0.3 of it; a weed clump or a post under the crown's edge is 0.4-0.5
+    # of it away. Sightings farther than this share of the width from the outline's
+    # centre are left out; a trunk left out so leaves the tree at its outline's centre,
+    # as without trunks, while one let in wrongly would move it by a metre.
+    trunk_reach_share: float = 0.3
 
     def __post_init__(self) -> None:
         _validate_traits(self)
@@ -434,3 +453,6 @@ def _validate_traits(r: TraitsConfig) -> None:
     _need(r.min_hits >= 1, "traits.min_hits must be >= 1")
     _need(r.voxel_m > 0 and r.max_points > 0, "traits.voxel_m and max_points must be > 0")
     _need(r.max_yaw_rate > 0, "traits.max_yaw_rate must be > 0")
+    _need(r.trunk_min_scans >= 0, "traits.trunk_min_scans must be >= 0 (0: never)")
+    _need(r.trunk_agree_m > 0, "traits.trunk_agree_m must be > 0")
+    _need(r.trunk_reach_share > 0, "traits.trunk_reach_share must be > 0")

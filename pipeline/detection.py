@@ -12,10 +12,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
-from treetraits.pipeline.classify import Shape, horizontal_extent, judge, shape_of
+from treetraits.pipeline.classify import Shape, horizontal_extent, judge, roughness, shape_of
 from treetraits.pipeline.clustering import euclidean_clusters
 from treetraits.pipeline.config import (
     ClassifyConfig,
@@ -81,6 +82,9 @@ class Cluster:
     # The beam above its highest ring passed over all of it (`pipeline.visibility`): its
     # height in this scan is its top, not the top beam's reach.
     top_seen: bool = False
+    # (3,) base frame: the axis of the one trunk seen under its crown in this scan
+    # (`cluster_trunks`); None when none or more than one was seen.
+    trunk: np.ndarray | None = None
 
     @property
     def features(self) -> np.ndarray:
@@ -299,7 +303,7 @@ def detect(
     # Posts and people are cut out first, each its own cluster (`pipeline.stems`).
     lidar_xy = T_base_lidar[:2, 3]
     voxel_height = ground.height(voxels)
-    blobs = _band_blobs(xyz, height, config.cluster)
+    blobs = _band_blobs(xyz, height, ring, config.cluster, lidar_xy)
     stem_of, is_stem = _stems(
         xyz, height, ring, T_base_lidar[:3, 3], blobs, voxels, voxel_height, config
     )
@@ -324,6 +328,7 @@ def detect(
     )
     trunk_blobs = [blob for blob, stem in zip(blobs, is_stem, strict=True) if not stem]
     labels, counts["split"] = split_at_trunks(labels, voxels, crown, trunk_blobs, config.cluster)
+    trunks = cluster_trunks(labels, voxels, crown, trunk_blobs, config.cluster, config.classify)
     stemmed = stem_of >= 0
     labels[stemmed] = labels.max(initial=-1) + 1 + stem_of[stemmed]
     clusters_kept = _size_filter(labels, config.cluster)
@@ -348,6 +353,7 @@ def detect(
         lidar_xy,
         config.classify,
         top_seen,
+        trunks,
     )
     counts["clustered_voxels"] = sum(c.num_points for c in clusters)
     clock.lap("features")
@@ -365,16 +371,16 @@ def split_at_trunks(
     labels: np.ndarray,
     voxels: np.ndarray,
     crown: np.ndarray,
-    trunk_blobs: list[tuple[int, np.ndarray]],
+    trunk_blobs: list[BandBlob],
     config: ClusterConfig,
 ) -> tuple[np.ndarray, int]:
     """Crowns that touch (a hedgerow) make one cluster along the row: such a cluster is
     cut into one per trunk, each voxel to the nearest trunk (x-y). Trunks: the trunk
     band's blobs (`_band_blobs`, stems left out) whose nearest crown voxel (x-y, `crown`
-    marks them) is the cluster's: a trunk stands under its own crown, which need not
-    reach down to it. Only clusters at least two tree spacings long are looked at (a
-    single crown, even an old one, has one trunk). Returns the new voxel labels and how
-    many clusters were cut."""
+    marks them) is the cluster's (`_blobs_under`): a trunk stands under its own crown,
+    which need not reach down to it. Only clusters at least two tree spacings long are
+    looked at (a single crown, even an old one, has one trunk). Returns the new voxel
+    labels and how many clusters were cut."""
     clustered = np.flatnonzero(labels >= 0)
     order = clustered[np.argsort(labels[clustered], kind="stable")]
     starts = np.flatnonzero(np.diff(labels[order], prepend=-2))
@@ -383,19 +389,14 @@ def split_at_trunks(
         for cells in np.split(order, starts[1:])
         if len(cells) and horizontal_extent(voxels[cells, :2]) >= 2 * config.min_tree_spacing_m
     ]
-    crown_index = np.flatnonzero(crown & (labels >= 0))
-    if not long or not trunk_blobs or len(crown_index) == 0:
+    if not long:
         return labels, 0
-    from scipy.spatial import cKDTree
-
-    centres = np.array([centre for _, centre in trunk_blobs])
-    _, nearest_voxel = cKDTree(voxels[crown_index, :2]).query(centres)
-    under = labels[crown_index[nearest_voxel]]
+    under = _blobs_under(labels, voxels, crown, trunk_blobs)
     next_label = int(labels.max(initial=-1)) + 1
     cut = 0
     for cells in long:
         mine = [trunk_blobs[k] for k in np.flatnonzero(under == labels[cells[0]])]
-        trunks = _trunks(mine, config)
+        trunks = np.array([blob.centre for blob in _trunks(mine, config)]).reshape(-1, 2)
         if len(trunks) < 2:
             continue
         gaps = voxels[cells, None, :2] - trunks[None]
@@ -406,6 +407,50 @@ def split_at_trunks(
     return labels, cut
 
 
+def cluster_trunks(
+    labels: np.ndarray,
+    voxels: np.ndarray,
+    crown: np.ndarray,
+    trunk_blobs: list[BandBlob],
+    config: ClusterConfig,
+    classify: ClassifyConfig,
+) -> dict[int, np.ndarray]:
+    """The trunk axis (`BandBlob.axis`, base) of each cluster label under whose crown
+    exactly one trunk stands in this scan: where a tree is, for the field map, is its
+    trunk, not its crown's centre (a lobed or one-sided crown's centre lies decimetres
+    off it). A trunk here is a band blob that is smooth along the rings (bark, under
+    `classify.min_roughness_m`; a weed clump as narrow is foliage, rough; too few
+    returns to tell: not counted), a tree spacing from any other (`_trunks`). Two or
+    more: a neighbour's trunk beside it, and no telling which is the tree's."""
+    smooth = [
+        k
+        for k, blob in enumerate(trunk_blobs)
+        if math.isfinite(blob.roughness) and blob.roughness < classify.min_roughness_m
+    ]
+    under = _blobs_under(labels, voxels, crown, [trunk_blobs[k] for k in smooth])
+    found = {}
+    for label in np.unique(under[under >= 0]):
+        mine = [trunk_blobs[smooth[k]] for k in np.flatnonzero(under == label)]
+        kept = _trunks(mine, config)
+        if len(kept) == 1:
+            found[int(label)] = kept[0].axis
+    return found
+
+
+def _blobs_under(
+    labels: np.ndarray, voxels: np.ndarray, crown: np.ndarray, blobs: list[BandBlob]
+) -> np.ndarray:
+    """The cluster label of each blob's nearest crown voxel (x-y), -1 with no crown."""
+    crown_index = np.flatnonzero(crown & (labels >= 0))
+    if not blobs or len(crown_index) == 0:
+        return np.full(len(blobs), -1, dtype=np.int64)
+    from scipy.spatial import cKDTree
+
+    centres = np.array([blob.centre for blob in blobs])
+    _, nearest_voxel = cKDTree(voxels[crown_index, :2]).query(centres)
+    return labels[crown_index[nearest_voxel]]
+
+
 def _stems(
     xyz, height, ring, lidar_xyz, blobs, voxels, voxel_height, config: DetectionConfig
 ) -> tuple[np.ndarray, list[bool]]:
@@ -414,18 +459,18 @@ def _stems(
     cluster = config.cluster
     if cluster.min_stem_height_m <= 0:
         return np.full(len(voxels), -1, dtype=np.int64), [False] * len(blobs)
-    centres = np.array([centre for _, centre in blobs]).reshape(-1, 2)
+    centres = np.array([blob.centre for blob in blobs]).reshape(-1, 2)
     band_top = cluster.trunk_band_m[1]
     stems = find_stems(xyz, height, ring, lidar_xyz, centres, band_top, cluster, config.classify)
     is_stem = [any(np.array_equal(c, stem.centre) for stem in stems) for c in centres]
     # A post or a person whose foot stands in a weed clump (where the mower cannot reach)
     # is no blob in the trunk band: seed it again just above the understorey.
-    upper = _band_blobs(xyz, height, cluster, stem_seed_band(cluster))
+    upper = _band_blobs(xyz, height, ring, cluster, lidar_xyz[:2], stem_seed_band(cluster))
     found = np.array([stem.centre for stem in stems]).reshape(-1, 2)
     seeds = [
-        centre
-        for _, centre in upper
-        if not (np.hypot(*(found - centre).T) <= cluster.stem_radius_m).any()
+        blob.centre
+        for blob in upper
+        if not (np.hypot(*(found - blob.centre).T) <= cluster.stem_radius_m).any()
     ]
     if seeds:
         seed_top = stem_seed_band(cluster)[1]
@@ -442,41 +487,73 @@ def stem_seed_band(config: ClusterConfig) -> tuple[float, float]:
     return config.bridge_min_height_m, config.bridge_min_height_m + (high - low)
 
 
+class BandBlob(NamedTuple):
+    """Returns of a trunk, a post or a leg in a band above the terrain."""
+
+    returns: int
+    centre: np.ndarray  # (2,) x-y mean of the returns, base
+    # (3,) base: the axis under the returns, taking the blob for a round stem seen from
+    # the LiDAR. Returns cover the near half of a cylinder of radius r evenly across the
+    # line of sight, so their mean lies pi/4 r in front of the axis; r is half the
+    # blob's width across the line of sight. z: the returns' mean height.
+    axis: np.ndarray
+    roughness: float  # m, along the rings (`classify.roughness`): wood is smooth
+
+
 def _band_blobs(
     xyz: np.ndarray,
     height: np.ndarray,
+    ring: np.ndarray,
     config: ClusterConfig,
+    lidar_xy: np.ndarray,
     band: tuple[float, float] | None = None,
-) -> list[tuple[int, np.ndarray]]:
+) -> list[BandBlob]:
     """Blobs of the trunk band's returns (or `band`'s: heights above the terrain) (x-y)
-    0.25 m apart at most, no wider than `max_trunk_width_m`: (returns, centre) of each.
-    Trunks, posts and legs."""
+    0.25 m apart at most, no wider than `max_trunk_width_m`. Trunks, posts and legs."""
     low, high = band or config.trunk_band_m
-    xy = xyz[(height >= low) & (height <= high), :2]
-    if len(xy) < config.min_trunk_points:
+    in_band = (height >= low) & (height <= high)
+    band_xyz, band_ring = xyz[in_band], ring[in_band]
+    if len(band_xyz) < config.min_trunk_points:
         return []
+    xy = band_xyz[:, :2]
     blob = euclidean_clusters(np.column_stack([xy, np.zeros(len(xy))]), 0.25)
     found = []
     for b in np.unique(blob):
-        part = xy[blob == b]
+        mine = blob == b
+        part = xy[mine]
         if len(part) < config.min_trunk_points:
             continue
         if horizontal_extent(part) > config.max_trunk_width_m:
             continue  # a skirt hanging into the band, a weed: not a trunk
-        found.append((len(part), part.mean(axis=0)))
+        centre = part.mean(axis=0)
+        z = float(band_xyz[mine, 2].mean())
+        rough = roughness(band_xyz[mine], band_ring[mine], lidar_xy)
+        found.append(BandBlob(len(part), centre, _axis(part, centre, z, lidar_xy), rough))
     return found
 
 
-def _trunks(blobs: list[tuple[int, np.ndarray]], config: ClusterConfig) -> np.ndarray:
-    """Trunk centres (x-y) among band blobs: each at least `min_tree_spacing_m` from one
-    with more returns."""
-    found = sorted(blobs, key=lambda item: -item[0])
+def _axis(xy: np.ndarray, centre: np.ndarray, z: float, lidar_xy: np.ndarray) -> np.ndarray:
+    """`BandBlob.axis` of returns `xy` whose mean is `centre`."""
+    ray = centre - lidar_xy
+    reach = float(np.hypot(*ray))
+    if reach == 0.0:
+        return np.array([*centre, z])
+    ray /= reach
+    across = xy @ np.array([-ray[1], ray[0]])
+    radius = float(across.max() - across.min()) / 2
+    return np.array([*(centre + ray * (math.pi / 4) * radius), z])
+
+
+def _trunks(blobs: list[BandBlob], config: ClusterConfig) -> list[BandBlob]:
+    """Trunks among band blobs: each at least `min_tree_spacing_m` from one with more
+    returns."""
+    found = sorted(blobs, key=lambda blob: -blob.returns)
     # The best seen first: a blob of a few returns within a tree spacing of it gives way.
-    kept: list[np.ndarray] = []
-    for _, centre in found:
-        if all(np.hypot(*(centre - k)) >= config.min_tree_spacing_m for k in kept):
-            kept.append(centre)
-    return np.array(kept).reshape(-1, 2)
+    kept: list[BandBlob] = []
+    for blob in found:
+        if all(np.hypot(*(blob.centre - k.centre)) >= config.min_tree_spacing_m for k in kept):
+            kept.append(blob)
+    return kept
 
 
 def _size_filter(labels: np.ndarray, config: ClusterConfig) -> np.ndarray:
@@ -497,6 +574,7 @@ def _features(
     lidar_xy,
     classify: ClassifyConfig,
     top_seen: Callable[[np.ndarray], bool],
+    trunks: dict[int, np.ndarray],
 ) -> list[Cluster]:
     point_label = labels[voxel_of]
     order = np.argsort(point_label, kind="stable")
@@ -529,6 +607,7 @@ def _features(
                 shape=shape,
                 verdict=judge(shape, classify),
                 top_seen=top_seen(members),
+                trunk=trunks.get(int(kept[k])),
             )
         )
     return clusters

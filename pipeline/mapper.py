@@ -16,7 +16,7 @@ import numpy as np
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan
 from treetraits.pipeline.classify import FLOATING, LOW, TREE, Votes
-from treetraits.pipeline.config import MapperConfig
+from treetraits.pipeline.config import MapperConfig, TraitsConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
 from treetraits.pipeline.localization.utm import wrap_angle
@@ -94,6 +94,9 @@ class _Tree:
     ndvi_sum: float = 0.0
     ndvi_count: int = 0
     top_seen: bool = False
+    # x-y of the trunk axis under its crown, one per scan that saw exactly one (the traits
+    # frame, as the outline): where the tree stands (`trunk_position`).
+    trunks: list[tuple[float, float]] = field(default_factory=list)
 
 
 # Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).
@@ -287,6 +290,9 @@ class TreeMapper:
         tree = self._trees[track.tree_id]
         position = track.state[:3]
         centre = tree.traits.centre()
+        trunk = trunk_position(tree.trunks, self.config.traits, centre, tree.traits.width)
+        if trunk is not None:
+            centre = trunk
         x, y = position[0], position[1]
         if centre is not None:  # traits frame -> the mapper's frame
             x, y = back[:2, :2] @ centre + back[:2, 3]
@@ -424,6 +430,10 @@ class TreeMapper:
             # The ground under the cluster, carried into the world with the full attitude.
             foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
             ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
+            if cluster.trunk is not None:
+                trunk = traits_from_base[:2, :3] @ cluster.trunk + traits_from_base[:2, 3]
+                if centres.nearest_is(trunk[None], tree_id)[0]:  # not a neighbour's
+                    tree.trunks.append((float(trunk[0]), float(trunk[1])))
         tree.traits.observe(points, ring, cluster.ground_z, world_points, ground_world, pose_sigma)
         # The cluster's top in view counts for this tree if that top is its own.
         if cluster.top_seen and own[int(np.argmax(cluster.points[:, 2]))]:
@@ -501,6 +511,43 @@ class TreeMapper:
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
         tree.top_seen = tree.top_seen or gone.top_seen
+        tree.trunks += gone.trunks
+
+
+def trunk_position(
+    trunks: list[tuple[float, float]],
+    config: TraitsConfig,
+    crown_centre: np.ndarray | None = None,
+    crown_width: float = float("nan"),
+) -> np.ndarray | None:
+    """Where a tree stands: the mean of the trunk sightings (x-y, one per scan) that lie
+    within `trunk_agree_m` of the sighting with the most such neighbours, when those are
+    at least `trunk_min_scans` and a majority of its sightings; else None (the crown
+    outline's centre stands in). A trunk is one place seen again scan after scan, while a
+    weed clump or a neighbour's trunk taken for it now and then is elsewhere. With the
+    crown's outline (`crown_centre`, `crown_width`), only a place within
+    `trunk_reach_share` of the width from its centre can be the trunk; the sightings
+    elsewhere still count against it (a trunk mostly hidden behind weeds is not told
+    from the weeds' sightings: the outline's centre stands in)."""
+    if config.trunk_min_scans <= 0 or len(trunks) < config.trunk_min_scans:
+        return None
+    xy = np.asarray(trunks, dtype=float)
+    # Candidates: at most ~64 of the sightings (a tree seen for minutes has hundreds), so
+    # the cost stays linear in them.
+    candidates = xy[:: max(1, len(xy) // 64)]
+    if crown_centre is not None and np.isfinite(crown_width):
+        off = candidates - crown_centre
+        reach = config.trunk_reach_share * crown_width
+        candidates = candidates[np.hypot(off[:, 0], off[:, 1]) <= reach]
+    if len(candidates) == 0:
+        return None
+    gaps = candidates[:, None, :] - xy[None, :, :]
+    close = np.hypot(gaps[..., 0], gaps[..., 1]) <= config.trunk_agree_m
+    support = close.sum(axis=1)
+    best = int(np.argmax(support))
+    if support[best] < config.trunk_min_scans or 2 * support[best] <= len(xy):
+        return None
+    return xy[close[best]].mean(axis=0)
 
 
 def _position_sigma(pose: Pose | None) -> float | None:

@@ -10,10 +10,17 @@ import numpy as np
 import pytest
 
 from tests.conftest import first_complete_scan
+from tests.test_classify import scan_of
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.drivers.records import POINT_DTYPE
 from treetraits.pipeline.clustering import attach, connected_labels, euclidean_clusters
-from treetraits.pipeline.config import ClusterConfig, CropConfig, DetectionConfig, GroundConfig
+from treetraits.pipeline.config import (
+    ClassifyConfig,
+    ClusterConfig,
+    CropConfig,
+    DetectionConfig,
+    GroundConfig,
+)
 from treetraits.pipeline.detection import (
     FLAT,
     crop_mask,
@@ -24,6 +31,7 @@ from treetraits.pipeline.detection import (
     to_base,
     voxel_grid,
 )
+from treetraits.sim.clutter import weed_clump
 from treetraits.sim.lidar import Scene
 from treetraits.sim.orchard import Ground, TreeSpec, ground_mesh, measure_truth, tree_mesh
 
@@ -306,3 +314,43 @@ def test_ndvi_function_is_asked_only_for_points_clear_of_the_ground(tree_scan):
     heights = tree_scan.points["z"][asked[0]] + LIDAR_HEIGHT
     assert heights.min() >= 0.04 and len(asked[0]) < 0.5 * len(tree_scan.points)
     assert all(c.ndvi == pytest.approx(0.7) for c in detection.clusters)
+
+
+def test_a_trunk_under_its_crown_is_where_the_tree_stands():
+    """Each crown's cluster carries the axis of the one trunk under it: a 16 cm and a
+    30 cm trunk, a lobed crown whose returns' centre is decimetres off its trunk, and a
+    trunk with a weed clump as narrow beside it (rough foliage, not bark). The axis is
+    the returns' mean moved back by pi/4 of the radius: the old trunk's raw mean lies
+    ~12 cm in front of it."""
+    rng = np.random.default_rng(3)
+    specs = {
+        "mature": TreeSpec("M", "1", 5.0, -2.5, 0.45, 0.08, 1.35, 1.1),
+        "old": TreeSpec("O", "1", 7.0, 4.0, 0.6, 0.15, 2.3, 2.2),
+        "lobed": TreeSpec(
+            "L", "1", -5.0, 3.0, 0.45, 0.08, 1.35, 1.1,
+            lobes=((0.6, 0.3, 0.0, 1.0, 0.8), (0.4, -0.5, 0.1, 0.9, 0.8)),
+        ),
+    }  # fmt: skip
+    meshes = [tree_mesh(spec, Ground(), rng) for spec in specs.values()]
+    # Under the mature crown, nearer the robot than its trunk: more returns than the trunk.
+    weed = weed_clump(4.8, -1.8, 0.0, 0.23, 0.4, rng)
+    scan = scan_of(*meshes, weed)
+    clusters = detect(scan.points, None, DEFAULT_T_BASE_LIDAR, DetectionConfig()).clusters
+    for name, spec in specs.items():
+        mine = min(
+            clusters, key=lambda c: math.hypot(c.centroid[0] - spec.x, c.centroid[1] - spec.y)
+        )
+        assert mine.trunk is not None, name
+        assert math.hypot(mine.trunk[0] - spec.x, mine.trunk[1] - spec.y) < 0.08, name
+    lobed = min(clusters, key=lambda c: math.hypot(c.centroid[0] + 5.0, c.centroid[1] - 3.0))
+    assert math.hypot(lobed.centroid[0] + 5.0, lobed.centroid[1] - 3.0) > 0.5
+    # Without the smoothness test the weed, as narrow as a trunk and with more returns,
+    # is taken for the mature tree's trunk.
+    weed_blob = detect(
+        scan.points,
+        None,
+        DEFAULT_T_BASE_LIDAR,
+        DetectionConfig(classify=ClassifyConfig(min_roughness_m=1.0)),
+    ).clusters
+    mature = min(weed_blob, key=lambda c: math.hypot(c.centroid[0] - 5.0, c.centroid[1] + 2.5))
+    assert math.hypot(mature.trunk[0] - 4.8, mature.trunk[1] + 1.8) < 0.2

@@ -18,7 +18,7 @@ from treetraits.drivers.calibration import Calibration, CameraModel, load_calibr
 from treetraits.drivers.records import POINT_DTYPE, Frame, Pose, Scan
 from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
-from treetraits.pipeline.mapper import ScanResult, TrackedTree, TreeMapper
+from treetraits.pipeline.mapper import ScanResult, TrackedTree, TreeMapper, trunk_position
 from treetraits.pipeline.tracking import Motion
 from treetraits.sim.camera import FOLIAGE, Survey3Emulator
 from treetraits.sim.lidar import Scene, Vlp16Emulator
@@ -385,3 +385,33 @@ def test_scans_taken_while_turning_fast_add_nothing_to_the_outline():
     assert len(steady_trees) >= 2 and len(turning_trees) == len(steady_trees)
     assert all(math.isfinite(t.width_m) for t in steady_trees)
     assert all(math.isnan(t.width_m) for t in turning_trees)
+
+
+def test_a_tree_stands_where_most_of_its_trunk_sightings_agree():
+    """`trunk_position`: the sightings that agree within `trunk_agree_m` of the best
+    supported one, when they are enough and a majority; a weed clump or a neighbour's
+    trunk taken for the trunk now and then does not move the tree."""
+    config = TraitsConfig()  # 3 sightings, 0.25 m
+    rng = np.random.default_rng(1)
+    trunk = np.array([10.0, -4.0])
+    sightings = [tuple(trunk + rng.normal(0, 0.03, 2)) for _ in range(20)]
+    weed = [tuple(np.array([10.6, -3.7]) + rng.normal(0, 0.03, 2)) for _ in range(8)]
+    found = trunk_position(sightings + weed, config)
+    assert np.hypot(*(found - trunk)) < 0.03
+    assert np.hypot(*(found - trunk)) < np.hypot(*(np.mean(sightings + weed, axis=0) - trunk))
+    assert trunk_position(sightings[:2], config) is None  # too few: the outline stands in
+    # No majority: as many sightings elsewhere as at the best place.
+    assert trunk_position(sightings[:8] + weed, config) is None
+    assert trunk_position(sightings, dataclasses.replace(config, trunk_min_scans=0)) is None
+    # A weed clump at the crown's edge seen more often than the trunk is taken for it;
+    # once the crown's outline is known (centre 0.1 m off the trunk, 2.8 m wide) it is
+    # no candidate, and the trunk, short of a majority, is not trusted either.
+    edge = [tuple(np.array([11.5, -4.2]) + rng.normal(0, 0.03, 2)) for _ in range(30)]
+    assert np.hypot(*(trunk_position(sightings + edge, config) - (11.5, -4.2))) < 0.03
+    crown = trunk + np.array([0.1, 0.0])
+    assert trunk_position(sightings + edge, config, crown, 2.8) is None
+    found = trunk_position(sightings + edge[:10], config, crown, 2.8)
+    assert np.hypot(*(found - trunk)) < 0.03
+    # Hundreds of sightings (a tree seen for minutes): the same place.
+    many = [tuple(trunk + rng.normal(0, 0.03, 2)) for _ in range(600)]
+    assert np.hypot(*(trunk_position(many, config) - trunk)) < 0.01
