@@ -38,20 +38,33 @@ _RECORD = np.arange(m.RECORDS_PER_BLOCK)
 _LASER_OF_RECORD = _RECORD % m.LASERS
 # Firing time of record j after the first firing of its block.
 _T_IN_BLOCK_NS = (_RECORD // m.LASERS) * m.SEQUENCE_NS + _LASER_OF_RECORD * m.LASER_SLOT_NS
+# A record's index in a scan's (packet, block, record) order: the low 5 bits are j.
+_RECORD_BITS = m.RECORDS_PER_BLOCK - 1
+assert m.RECORDS_PER_BLOCK & _RECORD_BITS == 0
+# The four one-byte fields that end a point (intensity, ring, return_type, duplicate),
+# seen as one little-endian word: one strided write per point instead of four.
+_TAIL_VIEW = np.dtype({"names": ["tail"], "formats": ["<u4"], "offsets": [24], "itemsize": 28})
+assert [POINT_DTYPE.fields[f][1] for f in ("intensity", "ring", "return_type", "duplicate")] == [
+    24,
+    25,
+    26,
+    27,
+] and POINT_DTYPE.itemsize == _TAIL_VIEW.itemsize
+_DUPLICATE_BIT = np.uint32(1 << 24)
 
 
 @dataclass(frozen=True)
 class _RecordTables:
-    """What a record's place in the packet (block b, record j) says about its point,
-    whatever the packet holds: (12, 32) grids that broadcast over a batch of packets."""
+    """What a record's place in the packet says about its point, whatever the packet
+    holds. Laser terms depend on the record j alone: (32,) tables, looked up per point.
+    Block terms are (12, 32) grids that broadcast over a batch of packets."""
 
-    t_offset_ns: np.ndarray  # firing time after the packet's ToH
-    block_fraction: np.ndarray  # that time in firing blocks, to interpolate the azimuth
-    cos_elevation: np.ndarray
-    sin_elevation: np.ndarray
-    vertical_offset_m: np.ndarray
-    ring: np.ndarray
-    return_type: np.ndarray
+    t_offset_ns: np.ndarray  # (12, 32): firing time after the packet's ToH
+    block_fraction: np.ndarray  # (32,): that time in firing blocks, to interpolate the azimuth
+    cos_elevation: np.ndarray  # (32,)
+    sin_elevation: np.ndarray  # (32,)
+    vertical_offset_m: np.ndarray  # (32,)
+    tail: np.ndarray  # (12, 32) "<u4": ring and return_type in their bytes of the tail word
 
 
 @lru_cache(maxsize=16)
@@ -59,20 +72,22 @@ def _record_tables(dual: bool, last_return: bool, optics: m.LaserModel) -> _Reco
     block = np.arange(m.BLOCKS_PER_PACKET)[:, None]
     # In dual mode blocks (0,1), (2,3)... are one firing: last return, then strongest.
     firing_block = block // 2 if dual else block
-    laser = np.broadcast_to(_LASER_OF_RECORD, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK))
-    elevation = np.deg2rad(np.asarray(optics.elevation_deg, dtype=np.float64))[laser]
+    elevation = np.deg2rad(np.asarray(optics.elevation_deg, dtype=np.float64))[_LASER_OF_RECORD]
     if dual:
         return_type = np.where(block % 2 == 1, m.RETURN_TYPE_STRONGEST, m.RETURN_TYPE_LAST)
     else:
         return_type = m.RETURN_TYPE_LAST if last_return else m.RETURN_TYPE_STRONGEST
+    ring = optics.ring[_LASER_OF_RECORD].astype(np.uint32)
+    tail = (ring << 8) | (np.asarray(return_type, dtype=np.uint32) << 16)
     return _RecordTables(
         t_offset_ns=(firing_block * m.BLOCK_NS + _T_IN_BLOCK_NS).astype(np.int64),
         block_fraction=(_T_IN_BLOCK_NS / m.BLOCK_NS).astype(np.float32),
         cos_elevation=np.cos(elevation).astype(np.float32),
         sin_elevation=np.sin(elevation).astype(np.float32),
-        vertical_offset_m=(np.asarray(optics.vertical_offset_mm) / 1000)[laser].astype(np.float32),
-        ring=optics.ring[laser],
-        return_type=np.broadcast_to(return_type, laser.shape).astype(np.uint8),
+        vertical_offset_m=(np.asarray(optics.vertical_offset_mm) / 1000)[_LASER_OF_RECORD].astype(
+            np.float32
+        ),
+        tail=np.broadcast_to(tail, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK)).astype("<u4"),
     )
 
 
@@ -129,6 +144,27 @@ def _rotation_rate(firing_azimuth: np.ndarray) -> np.ndarray:
     return (sweep / (firing_azimuth.shape[1] - 1)).astype(np.float32)
 
 
+def _centidegrees(azimuth: np.ndarray, dual: bool, tables: _RecordTables) -> np.ndarray:
+    """(packets, 12, 32) azimuth of every record's firing in centidegrees, not yet wrapped
+    at 36000: its block's azimuth plus the packet's rotation rate times the record's
+    firing time."""
+    rate = _rotation_rate(azimuth[:, :: 2 if dual else 1].astype(np.int32))
+    block = azimuth.astype(np.float32)  # exact; spares a per-record cast below
+    return block[:, :, None] + (rate[:, None] * tables.block_fraction)[:, None]
+
+
+def _tail_words(records: np.ndarray, distance: np.ndarray, dual: bool, tables: _RecordTables):
+    """(packets, 12, 32) tail words: reflectivity, ring, return type and the duplicate flag."""
+    words = np.empty(distance.shape, dtype=tables.tail.dtype)
+    words[...] = tables.tail
+    tail_bytes = words.view(np.uint8).reshape(*distance.shape, 4)
+    tail_bytes[..., 0] = records["reflectivity"]
+    if dual:
+        # A single echo is reported by both blocks of the pair: flag the repeat.
+        np.equal(distance[:, 1::2], distance[:, 0::2], out=tail_bytes[:, 1::2, :, 3].view(bool))
+    return words
+
+
 def decode_packets(
     packets: np.ndarray, t_packet_ns: np.ndarray, optics: m.LaserModel
 ) -> np.ndarray:
@@ -139,8 +175,9 @@ def decode_packets(
     Records with distance 0 (no return) are skipped. Points come in packet, block,
     firing sequence, laser order.
 
-    Everything is computed on (packets, 12, 32) grids against constant per-record tables
-    and compressed once by the "has a return" mask: no per-point integer arithmetic.
+    The records with a return are found first; what is cheap on the whole
+    (packets, 12, 32) grid is computed there and gathered, the rest per point, and each
+    field is written once into the output.
     """
     if len(packets) == 0:
         return np.empty(0, dtype=POINT_DTYPE)
@@ -149,38 +186,23 @@ def decode_packets(
     tables = _record_tables(dual, mode == m.RETURN_LAST, optics)
     blocks = packets["blocks"]
     records = blocks["records"]
-    distance = records["distance"]
+    distance = np.ascontiguousarray(records["distance"])
+    index = np.flatnonzero(distance != 0)
+    record = index & _RECORD_BITS
+    points = np.empty(len(index), dtype=POINT_DTYPE)
 
-    # Every field is computed for every record, straight into a (packets, 12, 32) grid
-    # of points; the records with no return are dropped at the end in one compression.
-    # Per-point gathers and per-field compressions cost more than the few empty records.
-    grid = np.empty(distance.shape, dtype=POINT_DTYPE)
-    rng = distance * np.float32(m.DISTANCE_UNIT_M)
-    horizontal = rng * tables.cos_elevation
-
-    rate = _rotation_rate(blocks["azimuth"][:, :: 2 if dual else 1].astype(np.int32))
-    centideg = blocks["azimuth"][:, :, None] + (rate[:, None, None] * tables.block_fraction)
-    centideg[centideg >= 36000] -= 36000
-    azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=grid["azimuth"])
-    np.multiply(horizontal, np.cos(azimuth), out=grid["x"])
-    np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth), out=grid["y"])
-    np.add(rng * tables.sin_elevation, tables.vertical_offset_m, out=grid["z"])
-    np.add(
-        np.asarray(t_packet_ns, dtype=np.int64)[:, None, None],
-        tables.t_offset_ns,
-        out=grid["t"],
-    )
-    grid["intensity"] = records["reflectivity"]
-    grid["ring"] = tables.ring
-    grid["return_type"] = tables.return_type
-    if dual:
-        # A single echo is reported by both blocks of the pair: flag the repeat.
-        grid["duplicate"][:, 0::2] = 0
-        grid["duplicate"][:, 1::2] = distance[:, 1::2] == distance[:, 0::2]
-    else:
-        grid["duplicate"] = 0
-
-    has_return = (distance != 0).reshape(-1)
-    # Compress whole 28-byte records at once (a void view copies rows as raw bytes).
-    rows = grid.reshape(-1).view(np.dtype((np.void, POINT_DTYPE.itemsize)))
-    return rows[has_return].view(POINT_DTYPE)
+    rng = distance.reshape(-1).take(index) * np.float32(m.DISTANCE_UNIT_M)
+    centideg = _centidegrees(blocks["azimuth"], dual, tables).reshape(-1).take(index)
+    np.subtract(centideg, 36000, out=centideg, where=centideg >= 36000)
+    azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=centideg)
+    points["azimuth"] = azimuth
+    horizontal = rng * tables.cos_elevation.take(record)
+    np.multiply(horizontal, np.cos(azimuth), out=points["x"])
+    np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth), out=points["y"])
+    np.multiply(rng, tables.sin_elevation.take(record), out=rng)
+    np.add(rng, tables.vertical_offset_m.take(record), out=points["z"])
+    t_grid = np.asarray(t_packet_ns, dtype=np.int64)[:, None, None] + tables.t_offset_ns
+    points["t"] = t_grid.reshape(-1).take(index)
+    tail = points.view(_TAIL_VIEW)["tail"]
+    tail[...] = _tail_words(records, distance, dual, tables).reshape(-1).take(index)
+    return points
