@@ -108,6 +108,12 @@ def valid_packets(packets: np.ndarray) -> np.ndarray:
     return flags_ok & azimuth_ok & mode_ok
 
 
+def azimuths_in_range(packets: np.ndarray) -> np.ndarray:
+    """Per packet: all 12 block azimuths in 0..36000 (the part of `valid_packets` that a
+    per-packet check of the flags and return mode leaves)."""
+    return (packets["blocks"]["azimuth"] <= 36000).all(axis=1)
+
+
 def resolve_hour(toh_us: np.ndarray, t_ref_ns: np.ndarray) -> np.ndarray:
     """Absolute device time (ns since the epoch) of each packet's ToH.
 
@@ -121,6 +127,22 @@ def resolve_hour(toh_us: np.ndarray, t_ref_ns: np.ndarray) -> np.ndarray:
     half_hour = m.HOUR_NS // 2
     t = np.where(t - t_ref_ns > half_hour, t - m.HOUR_NS, t)
     return np.where(t_ref_ns - t > half_hour, t + m.HOUR_NS, t)
+
+
+_INT64_SAFE = 2**62  # far enough from int64's limits that NumPy's arithmetic cannot wrap
+
+
+def resolve_hour_one(toh_us: int, t_ref_ns: int) -> int:
+    """`resolve_hour` of one ToH, in Python integers: the same result without the cost of
+    NumPy calls on one-element arrays (the batcher needs it once per scan)."""
+    if not (isinstance(t_ref_ns, int) and -_INT64_SAFE < t_ref_ns < _INT64_SAFE):
+        return int(resolve_hour(np.array([toh_us]), np.array([t_ref_ns]))[0])
+    t = t_ref_ns // m.HOUR_NS * m.HOUR_NS + toh_us * 1000
+    if t - t_ref_ns > m.HOUR_NS // 2:
+        return t - m.HOUR_NS
+    if t_ref_ns - t > m.HOUR_NS // 2:
+        return t + m.HOUR_NS
+    return t
 
 
 def lidar_publish_time(payload: bytes, t_host: int) -> int:
