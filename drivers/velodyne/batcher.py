@@ -42,7 +42,7 @@ _LOSS_STEP_US = {mode: 1.5 * m.packet_period_ns(mode) / 1000 for mode in m.RETUR
 def _firings_in_order(t_packet: np.ndarray) -> bool:
     """True when each single-return packet starts after the last firing of the one
     before: the points' times then never run back and need no clamping."""
-    return len(t_packet) < 2 or int(np.diff(t_packet).min()) > _LAST_FIRING_SINGLE_NS
+    return len(t_packet) < 2 or int((t_packet[1:] - t_packet[:-1]).min()) > _LAST_FIRING_SINGLE_NS
 
 
 def _unwrap(toh_raw: int, last_toh: int) -> int:

@@ -112,7 +112,10 @@ def valid_packets(packets: np.ndarray) -> np.ndarray:
 def azimuths_in_range(packets: np.ndarray) -> np.ndarray:
     """Per packet: all 12 block azimuths in 0..36000 (the part of `valid_packets` that a
     per-packet check of the flags and return mode leaves)."""
-    return (packets["blocks"]["azimuth"] <= 36000).all(axis=1)
+    azimuth = packets["blocks"]["azimuth"]
+    if azimuth.max(initial=0) <= 36000:  # the usual case, in one reduction
+        return np.ones(len(packets), dtype=bool)
+    return (azimuth <= 36000).all(axis=1)
 
 
 def resolve_hour(toh_us: np.ndarray, t_ref_ns: np.ndarray) -> np.ndarray:
@@ -159,19 +162,22 @@ def lidar_publish_time(payload: bytes, t_host: int) -> int:
     return int(resolve_hour(np.array([toh_us]), np.array([t_host]))[0])
 
 
-def _rotation_rate(firing_azimuth: np.ndarray) -> np.ndarray:
-    """Per packet: rotation in centidegrees per firing block, from the first to the last
-    firing block of the packet (unwrapped across 0). One rate per packet averages out
-    the 0.01 deg quantisation of each block's azimuth."""
-    sweep = (firing_azimuth[:, -1] - firing_azimuth[:, 0]) % 36000
-    return (sweep / (firing_azimuth.shape[1] - 1)).astype(np.float32)
+def _rotation_rate(first: np.ndarray, last: np.ndarray, firings: int) -> np.ndarray:
+    """Per packet: rotation in centidegrees per firing block, from the azimuth of the
+    first to that of the last of its `firings` firing blocks (unwrapped across 0). One
+    rate per packet averages out the 0.01 deg quantisation of each block's azimuth."""
+    sweep = (last.astype(np.int32) - first) % 36000
+    return (sweep / (firings - 1)).astype(np.float32)
 
 
 def _centidegrees(azimuth: np.ndarray, dual: bool, tables: _RecordTables) -> np.ndarray:
     """(packets, 12, 32) azimuth of every record's firing in centidegrees, not yet wrapped
     at 36000: its block's azimuth plus the packet's rotation rate times the record's
     firing time."""
-    rate = _rotation_rate(azimuth[:, :: 2 if dual else 1].astype(np.int32))
+    firings = m.BLOCKS_PER_PACKET // 2 if dual else m.BLOCKS_PER_PACKET
+    # In dual return the last firing's first block is 10.
+    last = m.BLOCKS_PER_PACKET - (2 if dual else 1)
+    rate = _rotation_rate(azimuth[:, 0], azimuth[:, last], firings)
     block = azimuth.astype(np.float32)  # exact; spares a per-record cast below
     return block[:, :, None] + (rate[:, None] * tables.block_fraction)[:, None]
 
