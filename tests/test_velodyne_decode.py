@@ -1,6 +1,6 @@
 """`decode_packets` on batches of any size and from several threads at once.
 
-The decoder keeps its time arrays per thread and reuses them up to a size; larger
+The decoder keeps int64 work memory per thread and reuses it up to a size; larger
 batches get their own. Expected values come from decoding one packet at a time: a
 packet's points depend on that packet alone.
 """
@@ -18,7 +18,6 @@ from treetraits.drivers.velodyne import packet as p
 from treetraits.drivers.velodyne.sources import open_source
 
 CAPTURES = ["einride_vlp16_strongest_1000pkts.bin", "nebula_vlp16_dual_10hz.pcap"]
-PACKETS_KEPT = p._SCRATCH_MAX_RECORDS // (m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK)
 
 
 def real_packets(name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -40,15 +39,20 @@ def one_at_a_time(packets: np.ndarray, t_packet: np.ndarray) -> bytes:
 
 
 @pytest.mark.parametrize("name", CAPTURES)
-def test_batches_past_the_kept_size_decode_as_their_packets(name):
+def test_batches_of_any_size_decode_as_their_packets(name):
     packets, t_packet = real_packets(name)
-    assert len(packets) > PACKETS_KEPT  # the whole capture gets arrays of its own
-    expected = one_at_a_time(packets, t_packet)
-    assert p.decode_packets(packets, t_packet, m.VLP16).tobytes() == expected
-    # A batch the kept arrays just hold, then a smaller one reusing them.
-    for count in (PACKETS_KEPT, 7):
+    # The whole capture, then smaller batches reusing the memory it left.
+    for count in (len(packets), 300, 7):
         decoded = p.decode_packets(packets[:count], t_packet[:count], m.VLP16)
+        assert decoded.dtype == p.POINT_DTYPE
         assert decoded.tobytes() == one_at_a_time(packets[:count], t_packet[:count])
+
+
+def test_work_memory_is_kept_up_to_its_cap_only():
+    small, smaller = p._int64_work(1000), p._int64_work(10)
+    assert np.shares_memory(small, smaller)  # the same thread memory, reused
+    beyond = p._int64_work(p._SCRATCH_MAX_INT64 + 1)
+    assert not np.shares_memory(beyond, p._int64_work(10))
 
 
 def test_threads_decoding_at_once_get_their_own_points():

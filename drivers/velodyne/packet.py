@@ -41,7 +41,13 @@ _LASER_OF_RECORD = _RECORD % m.LASERS
 _T_IN_BLOCK_NS = (_RECORD // m.LASERS) * m.SEQUENCE_NS + _LASER_OF_RECORD * m.LASER_SLOT_NS
 # A record's index in a scan's (packet, block, record) order: the low 5 bits are j.
 _RECORD_BITS = m.RECORDS_PER_BLOCK - 1
+_RECORD_SHIFT = _RECORD_BITS.bit_length()  # index >> 5: the block, counted over the batch
 assert m.RECORDS_PER_BLOCK & _RECORD_BITS == 0
+# With fewer records than this holding a return (a dual-return scan has about half), a
+# point's azimuth and time are cheaper looked up from its block and record than computed
+# for every record and gathered (bench/decode.py: dual return faster, 20 Hz strongest,
+# 96 % of records with a return, slower).
+_PER_POINT_BELOW = 0.75
 # The four one-byte fields that end a point (intensity, ring, return_type, duplicate),
 # seen as one little-endian word: one strided write per point instead of four.
 _TAIL_VIEW = np.dtype({"names": ["tail"], "formats": ["<u4"], "offsets": [24], "itemsize": 28})
@@ -51,7 +57,6 @@ assert [POINT_DTYPE.fields[f][1] for f in ("intensity", "ring", "return_type", "
     26,
     27,
 ] and POINT_DTYPE.itemsize == _TAIL_VIEW.itemsize
-_DUPLICATE_BIT = np.uint32(1 << 24)
 
 
 @dataclass(frozen=True)
@@ -61,6 +66,8 @@ class _RecordTables:
     Block terms are (12, 32) grids that broadcast over a batch of packets."""
 
     t_offset_ns: np.ndarray  # (12, 32): firing time after the packet's ToH
+    block_t_offset_ns: np.ndarray  # (12,): the block's first firing after the packet's ToH
+    t_in_block_ns: np.ndarray  # (32,): firing time after the block's first firing
     block_fraction: np.ndarray  # (32,): that time in firing blocks, to interpolate the azimuth
     cos_elevation: np.ndarray  # (32,)
     sin_elevation: np.ndarray  # (32,)
@@ -82,6 +89,8 @@ def _record_tables(dual: bool, last_return: bool, optics: m.LaserModel) -> _Reco
     tail = (ring << 8) | (np.asarray(return_type, dtype=np.uint32) << 16)
     return _RecordTables(
         t_offset_ns=(firing_block * m.BLOCK_NS + _T_IN_BLOCK_NS).astype(np.int64),
+        block_t_offset_ns=(firing_block[:, 0] * m.BLOCK_NS).astype(np.int64),
+        t_in_block_ns=_T_IN_BLOCK_NS.astype(np.int64),
         block_fraction=(_T_IN_BLOCK_NS / m.BLOCK_NS).astype(np.float32),
         cos_elevation=np.cos(elevation).astype(np.float32),
         sin_elevation=np.sin(elevation).astype(np.float32),
@@ -162,24 +171,14 @@ def lidar_publish_time(payload: bytes, t_host: int) -> int:
     return int(resolve_hour(np.array([toh_us]), np.array([t_host]))[0])
 
 
-def _rotation_rate(first: np.ndarray, last: np.ndarray, firings: int) -> np.ndarray:
-    """Per packet: rotation in centidegrees per firing block, from the azimuth of the
-    first to that of the last of its `firings` firing blocks (unwrapped across 0). One
-    rate per packet averages out the 0.01 deg quantisation of each block's azimuth."""
-    sweep = (last.astype(np.int32) - first) % 36000
-    return (sweep / (firings - 1)).astype(np.float32)
-
-
-def _centidegrees(azimuth: np.ndarray, dual: bool, tables: _RecordTables) -> np.ndarray:
-    """(packets, 12, 32) azimuth of every record's firing in centidegrees, not yet wrapped
-    at 36000: its block's azimuth plus the packet's rotation rate times the record's
-    firing time."""
+def _rotation_rate(azimuth: np.ndarray, dual: bool) -> np.ndarray:
+    """Per packet: rotation in centidegrees per firing block, from the azimuth of its
+    first to that of its last firing block (unwrapped across 0). One rate per packet
+    averages out the 0.01 deg quantisation of each block's azimuth."""
     firings = m.BLOCKS_PER_PACKET // 2 if dual else m.BLOCKS_PER_PACKET
-    # In dual return the last firing's first block is 10.
-    last = m.BLOCKS_PER_PACKET - (2 if dual else 1)
-    rate = _rotation_rate(azimuth[:, 0], azimuth[:, last], firings)
-    block = azimuth.astype(np.float32)  # exact; spares a per-record cast below
-    return block[:, :, None] + (rate[:, None] * tables.block_fraction)[:, None]
+    last = m.BLOCKS_PER_PACKET - (2 if dual else 1)  # in dual return: block 10
+    sweep = (azimuth[:, last].astype(np.int32) - azimuth[:, 0]) % 36000
+    return (sweep / (firings - 1)).astype(np.float32)
 
 
 def _tail_words(records: np.ndarray, distance: np.ndarray, dual: bool, tables: _RecordTables):
@@ -194,36 +193,76 @@ def _tail_words(records: np.ndarray, distance: np.ndarray, dual: bool, tables: _
     return words
 
 
-class _TimeScratch:
-    """A thread's int64 time grid and its gathered copy, kept from one decode to the
-    next. They are a scan's largest temporaries; fresh ones are faulted in page by page,
-    and freed after every scan they often go back to the system to be faulted in again
+class _IntScratch:
+    """A thread's int64 work memory, kept from one decode to the next. A scan's int64
+    temporaries are its largest; fresh ones are faulted in page by page, and freed
+    after every scan they often go back to the system to be faulted in again
     (bench/decode.py, dual return: about 1.5 us of 6.5 per packet)."""
 
     def __init__(self) -> None:
-        self.grid = np.empty(0, dtype=np.int64)
-        self.points = np.empty(0, dtype=np.int64)
+        self.memory = np.empty(0, dtype=np.int64)
 
 
 _THREAD = threading.local()  # threads decode at once; calls within one never overlap
-# Batches up to this many records (512 packets; a 5 Hz dual-return scan has 302) reuse
-# the thread's arrays, larger ones get their own: a thread keeps at most 4 MB.
-_SCRATCH_MAX_RECORDS = 512 * m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
+# A thread keeps at most this many int64 (3 per record of 512 packets, about 5 MB; a
+# 5 Hz dual-return scan has 302 packets); a batch needing more gets its own.
+_SCRATCH_MAX_INT64 = 3 * 512 * m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
 
 
-def _time_arrays(records: int, points: int) -> tuple[np.ndarray, np.ndarray]:
-    """Uninitialised int64 arrays for the time grid (`records`) and the points' times."""
-    if records > _SCRATCH_MAX_RECORDS:
-        return np.empty(records, dtype=np.int64), np.empty(points, dtype=np.int64)
-    scratch = getattr(_THREAD, "times", None)
+def _int64_work(count: int) -> np.ndarray:
+    """`count` uninitialised int64, from the thread's kept memory when it is small enough."""
+    if count > _SCRATCH_MAX_INT64:
+        return np.empty(count, dtype=np.int64)
+    scratch = getattr(_THREAD, "scratch", None)
     if scratch is None:
-        scratch = _THREAD.times = _TimeScratch()
-    # Grown with a quarter to spare: scans differ by a packet or two.
-    if scratch.grid.size < records:
-        scratch.grid = np.empty(min(records + records // 4, _SCRATCH_MAX_RECORDS), np.int64)
-    if scratch.points.size < points:
-        scratch.points = np.empty(min(points + points // 4, _SCRATCH_MAX_RECORDS), np.int64)
-    return scratch.grid[:records], scratch.points[:points]
+        scratch = _THREAD.scratch = _IntScratch()
+    if scratch.memory.size < count:  # a quarter to spare: scans differ by a packet or two
+        scratch.memory = np.empty(min(count + count // 4, _SCRATCH_MAX_INT64), np.int64)
+    return scratch.memory[:count]
+
+
+def _from_grids(
+    packets: np.ndarray,
+    t_packet_ns: np.ndarray,
+    index: np.ndarray,
+    dual: bool,
+    tables: _RecordTables,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's azimuth (centidegrees, not yet wrapped at 36000) and firing time,
+    computed for every record on (packets, 12, 32) grids and gathered at `index`."""
+    azimuth = packets["blocks"]["azimuth"]
+    rate = _rotation_rate(azimuth, dual)
+    block = azimuth.astype(np.float32)  # exact; spares a per-record cast below
+    centideg = block[:, :, None] + (rate[:, None] * tables.block_fraction)[:, None]
+    work = _int64_work(centideg.size + len(index))
+    t_grid, t = work[: centideg.size], work[centideg.size :]
+    t_packet = np.asarray(t_packet_ns, dtype=np.int64)[:, None, None]
+    np.add(t_packet, tables.t_offset_ns, out=t_grid.reshape(centideg.shape))
+    np.take(t_grid, index, out=t, mode="clip")  # the indices are in range: no checking copy
+    return centideg.reshape(-1).take(index), t
+
+
+def _per_point(
+    packets: np.ndarray,
+    t_packet_ns: np.ndarray,
+    index: np.ndarray,
+    record: np.ndarray,
+    dual: bool,
+    tables: _RecordTables,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's azimuth (centidegrees, not yet wrapped at 36000) and firing time,
+    from its block's azimuth, rate and first firing and its record's share of them."""
+    azimuth = packets["blocks"]["azimuth"]
+    rate = np.repeat(_rotation_rate(azimuth, dual), m.BLOCKS_PER_PACKET)
+    t_block = np.asarray(t_packet_ns, dtype=np.int64)[:, None] + tables.block_t_offset_ns
+    block, t, t_since = _int64_work(3 * len(index)).reshape(3, len(index))
+    np.right_shift(index, _RECORD_SHIFT, out=block)
+    centideg = rate.take(block)
+    centideg *= tables.block_fraction.take(record)
+    centideg += azimuth.astype(np.float32).reshape(-1).take(block)  # u2 to f32 is exact
+    np.take(t_block.reshape(-1), block, out=t, mode="clip")
+    np.add(t, np.take(tables.t_in_block_ns, record, out=t_since, mode="clip"), out=t)
+    return centideg, t
 
 
 def decode_packets(
@@ -236,9 +275,9 @@ def decode_packets(
     Records with distance 0 (no return) are skipped. Points come in packet, block,
     firing sequence, laser order.
 
-    The records with a return are found first; what is cheap on the whole
-    (packets, 12, 32) grid is computed there and gathered, the rest per point, and each
-    field is written once into the output.
+    The records with a return are found first; the azimuth and time are gathered from
+    grids over every record or, when few records hold a return, looked up per point; the
+    rest is per point; each field is written once into the output.
     """
     if len(packets) == 0:
         return np.empty(0, dtype=POINT_DTYPE)
@@ -253,7 +292,11 @@ def decode_packets(
     points = np.empty(len(index), dtype=POINT_DTYPE)
 
     rng = distance.reshape(-1).take(index) * np.float32(m.DISTANCE_UNIT_M)
-    centideg = _centidegrees(blocks["azimuth"], dual, tables).reshape(-1).take(index)
+    if len(index) < _PER_POINT_BELOW * distance.size:
+        centideg, t = _per_point(packets, t_packet_ns, index, record, dual, tables)
+    else:
+        centideg, t = _from_grids(packets, t_packet_ns, index, dual, tables)
+    points["t"] = t
     np.subtract(centideg, 36000, out=centideg, where=centideg >= 36000)
     azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=centideg)
     points["azimuth"] = azimuth
@@ -262,10 +305,6 @@ def decode_packets(
     np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth), out=points["y"])
     np.multiply(rng, tables.sin_elevation.take(record), out=rng)
     np.add(rng, tables.vertical_offset_m.take(record), out=points["z"])
-    t_grid, t_at = _time_arrays(distance.size, len(index))
-    t_packet = np.asarray(t_packet_ns, dtype=np.int64)[:, None, None]
-    np.add(t_packet, tables.t_offset_ns, out=t_grid.reshape(distance.shape))
-    points["t"] = np.take(t_grid, index, out=t_at, mode="clip")  # indices are in range
     tail = points.view(_TAIL_VIEW)["tail"]
     tail[...] = _tail_words(records, distance, dual, tables).reshape(-1).take(index)
     return points
