@@ -1,9 +1,10 @@
 """Pure, vectorised decoding of VLP-16 data packets (1206-byte payloads).
 
 A batch of N packets is viewed in place as a structured array (`PACKET_DTYPE`), checked,
-and turned into points with one pass of NumPy per field: no Python loop per packet or
-per point. Conventions (ROS `lidar` frame, vertical offset applied, per-point time) are
-documented in `docs/lidar.md`.
+and turned into points by NumPy, each field written once: no Python loop per packet or
+per point. The points depend on the packets alone; each thread keeps some int64 work
+memory from one call to the next (`_int64_work`). Conventions (ROS `lidar` frame,
+vertical offset applied, per-point time) are documented in `docs/lidar.md`.
 """
 
 from __future__ import annotations
