@@ -20,17 +20,35 @@ import numpy as np
 from treetraits.drivers.records import Scan
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne.packet import (
+    azimuths_in_range,
     decode_packets,
-    resolve_hour,
-    valid_packets,
+    resolve_hour_one,
     view_packets,
 )
 
 _HOUR_US = 3_600_000_000
 _FLAG_LO = b"\xff" * m.BLOCKS_PER_PACKET
 _FLAG_HI = b"\xee" * m.BLOCKS_PER_PACKET
-_LAST_BLOCK_AZIMUTH = (m.BLOCKS_PER_PACKET - 1) * 100 + 2
-_TAIL = struct.Struct("<IBB")  # ToH, return mode, product at byte 1200
+# Last block's azimuth (byte 1102), then ToH, return mode and product (bytes 1200-1205).
+_FIELDS = struct.Struct("<1102xH96xIBB")
+assert _FIELDS.size == m.DATA_PACKET_SIZE
+# Last firing of a single-return packet after its ToH (block 11, 2nd sequence, laser 15).
+_LAST_FIRING_SINGLE_NS = m.PACKET_NS_SINGLE - m.SEQUENCE_NS + 15 * m.LASER_SLOT_NS
+_RETURN_MODES = frozenset(m.RETURN_MODE_NAMES)
+# A ToH step longer than 1.5 packet periods (us) means packets were lost.
+_LOSS_STEP_US = {mode: 1.5 * m.packet_period_ns(mode) / 1000 for mode in m.RETURN_MODE_NAMES}
+
+
+def _firings_in_order(t_packet: np.ndarray) -> bool:
+    """True when each single-return packet starts after the last firing of the one
+    before: the points' times then never run back and need no clamping."""
+    return len(t_packet) < 2 or int((t_packet[1:] - t_packet[:-1]).min()) > _LAST_FIRING_SINGLE_NS
+
+
+def _unwrap(toh_raw: int, last_toh: int) -> int:
+    """ToH wraps every hour; keep it increasing by choosing the hour nearest the last."""
+    step = (toh_raw - last_toh) % _HOUR_US
+    return last_toh + (step - _HOUR_US if step > _HOUR_US // 2 else step)
 
 
 @dataclass
@@ -55,13 +73,14 @@ class BatcherStats:
         return asdict(self)
 
 
-@dataclass
+@dataclass(slots=True)
 class _ScanInProgress:
     started_at_cut: bool
     return_mode: int
     product: int
+    t_host_first: int  # late packets are put back between the first and the last
+    t_host_last: int = 0
     payloads: list[bytes] = field(default_factory=list)
-    t_host: list[int] = field(default_factory=list)
     toh: list[int] = field(default_factory=list)  # unwrapped device microseconds
     lost: int = 0
     coverage: int | None = None  # centidegrees swept past the cut angle
@@ -92,61 +111,62 @@ class ScanBatcher:
     def push(self, payload: bytes, t_host: int) -> Scan | None:
         """Add one 1206-byte data payload received at `t_host` (ns since the epoch).
         Returns the scan this packet completed, if any. Never raises on bad bytes."""
-        self.stats.data_packets += 1
+        stats = self.stats
+        stats.data_packets += 1
         if (
             len(payload) != m.DATA_PACKET_SIZE
             or payload[0:1200:100] != _FLAG_LO
             or payload[1:1200:100] != _FLAG_HI
         ):
-            self.stats.malformed += 1
+            stats.malformed += 1
             return None
-        toh_raw, mode, product = _TAIL.unpack_from(payload, 1200)
-        azimuth = payload[_LAST_BLOCK_AZIMUTH] | payload[_LAST_BLOCK_AZIMUTH + 1] << 8
-        if mode not in m.RETURN_MODE_NAMES or azimuth > 36000 or toh_raw >= _HOUR_US:
-            self.stats.malformed += 1
+        azimuth, toh_raw, mode, product = _FIELDS.unpack_from(payload)
+        if mode not in _RETURN_MODES or azimuth > 36000 or toh_raw >= _HOUR_US:
+            stats.malformed += 1
             return None
         if product != m.PRODUCT_VLP16 and not self._supported(product, toh_raw):
-            self.stats.unsupported_model += 1
+            stats.unsupported_model += 1
             return None
 
-        toh = self._unwrap(toh_raw)
+        last_toh = self._last_toh
+        toh = toh_raw if last_toh is None else _unwrap(toh_raw, last_toh)
         closed: Scan | None = None
-        if self._scan is not None and (mode, product) != (
-            self._scan.return_mode,
-            self._scan.product,
-        ):
+        scan = self._scan
+        if scan is not None and (mode != scan.return_mode or product != scan.product):
             closed = self._close(complete=False)  # the sensor was reconfigured
         missing = 0
-        if self._last_toh is not None:
-            step = toh - self._last_toh
+        if last_toh is not None:
+            step = toh - last_toh
             if step == 0:
-                self.stats.duplicates += 1
+                stats.duplicates += 1
                 return closed
-            if -self._max_gap_us <= step < 0:
-                self._insert_late(payload, t_host, toh)
+            if step < 0 and step >= -self._max_gap_us:
+                self._insert_late(payload, toh)
                 return closed
             if abs(step) > self._max_gap_us:
-                self.stats.time_jumps += 1
+                stats.time_jumps += 1
                 closed = self._close(complete=False) or closed
-            elif step > 1.5 * m.packet_period_ns(mode) / 1000:
+            elif step > _LOSS_STEP_US[mode]:
                 missing = round(step * 1000 / m.packet_period_ns(mode)) - 1
-        if self._scan is not None and toh - self._scan.toh[0] > self._max_gap_us:
-            closed = self._close(complete=False) or closed  # no cut in sight: not spinning
         scan = self._scan
+        if scan is not None and toh - scan.toh[0] > self._max_gap_us:
+            closed = self._close(complete=False) or closed  # no cut in sight: not spinning
+            scan = None
         if scan is None:
-            scan = self._scan = _ScanInProgress(self._next_starts_at_cut, mode, product)
+            scan = self._scan = _ScanInProgress(self._next_starts_at_cut, mode, product, t_host)
             self._next_starts_at_cut = False
-        scan.lost += missing
-        self.stats.lost += missing
+        if missing:
+            scan.lost += missing
+            stats.lost += missing
         self._last_toh = toh
         scan.payloads.append(payload)
-        scan.t_host.append(t_host)
         scan.toh.append(toh)
+        scan.t_host_last = t_host
 
         coverage = (azimuth - self._cut) % 36000
-        crossed = scan.coverage is not None and scan.coverage > 18000 and coverage < scan.coverage
+        previous = scan.coverage
         scan.coverage = coverage
-        if crossed:
+        if previous is not None and previous > 18000 and coverage < previous:
             done = self._close(complete=scan.started_at_cut)
             self._next_starts_at_cut = True
             return done
@@ -155,13 +175,6 @@ class ScanBatcher:
     def flush(self) -> Scan | None:
         """Close the scan in progress (end of stream): it is partial."""
         return self._close(complete=False)
-
-    def _unwrap(self, toh_raw: int) -> int:
-        """ToH wraps every hour; keep it increasing by choosing the hour nearest the last."""
-        if self._last_toh is None:
-            return toh_raw
-        step = (toh_raw - self._last_toh) % _HOUR_US
-        return self._last_toh + (step - _HOUR_US if step > _HOUR_US // 2 else step)
 
     def _supported(self, product: int, toh_raw: int) -> bool:
         if self._forced_model is not None or product in m.MODEL_BY_PRODUCT:
@@ -185,7 +198,7 @@ class ScanBatcher:
                 self._last_toh = None
         return self._byte21_is_vlp16
 
-    def _insert_late(self, payload: bytes, t_host: int, toh: int) -> None:
+    def _insert_late(self, payload: bytes, toh: int) -> None:
         """Put a packet that arrived after a newer one back in place, if its scan is open."""
         scan = self._scan
         if scan is None or toh < scan.toh[0]:
@@ -196,7 +209,6 @@ class ScanBatcher:
             self.stats.duplicates += 1
             return
         scan.payloads.insert(at, payload)
-        scan.t_host.insert(at, t_host)
         scan.toh.insert(at, toh)
         self.stats.out_of_order += 1
         if scan.lost > 0:  # it was counted missing when the gap was seen
@@ -220,26 +232,30 @@ class ScanBatcher:
             self.stats.unsupported_model += len(scan.payloads)  # 0x21 timing never settled
             return None
         packets = view_packets(b"".join(scan.payloads))
-        ok = valid_packets(packets)
-        self.stats.malformed += int((~ok).sum())
-        if not ok.any():
+        ok = azimuths_in_range(packets)  # flags and return mode were checked in `push`
+        malformed = len(ok) - int(np.count_nonzero(ok))
+        if malformed == len(ok):
+            self.stats.malformed += malformed
             return None
         # The hour comes from the host clock once per scan; within the scan the device
         # clock alone orders the packets, so a host clock step cannot bend a scan's times.
         toh = np.asarray(scan.toh, dtype=np.int64)
-        t_first = int(resolve_hour(np.array([toh[0] % _HOUR_US]), np.array([scan.t_host[0]]))[0])
+        t_first = resolve_hour_one(scan.toh[0] % _HOUR_US, scan.t_host_first)
         t_packet = t_first + (toh - toh[0]) * 1000
-        if not ok.all():  # rare: skip the costly structured copy otherwise
+        if malformed:  # rare: skip the costly structured copy otherwise
+            self.stats.malformed += malformed
             packets, t_packet = packets[ok], t_packet[ok]
         optics = self._optics(scan.product)
         points = decode_packets(packets, t_packet, optics)
         mode_name = m.RETURN_MODE_NAMES[scan.return_mode]
-        if mode_name != "dual" and len(points):
+        dual = scan.return_mode == m.RETURN_DUAL
+        if not dual and len(points) and not _firings_in_order(t_packet):
             # A packet stamped less than a packet period after the one before (a corrupt
             # timestamp: a VLP-16 sends one every 1.33 ms) would start its firings before
             # the last ones ended; the scan's times are held from running back.
             np.maximum.accumulate(points["t"], out=points["t"])
-        duplicates = int(points["duplicate"].sum())
+        # Only dual return repeats an echo; single-return points are never flagged.
+        duplicates = int(np.count_nonzero(points["duplicate"])) if dual else 0
         self.stats.scans += 1
         self.stats.complete_scans += int(complete)
         self.stats.points += len(points) - duplicates
@@ -249,7 +265,7 @@ class ScanBatcher:
             points=points,
             t_start=int(t_packet[0]),
             t_end=int(t_packet[-1]) + last_firing,
-            t_host=scan.t_host[-1],
+            t_host=scan.t_host_last,
             complete=complete,
             packets=len(packets),
             lost_packets=scan.lost,

@@ -1,13 +1,15 @@
 """Pure, vectorised decoding of VLP-16 data packets (1206-byte payloads).
 
 A batch of N packets is viewed in place as a structured array (`PACKET_DTYPE`), checked,
-and turned into points with one pass of NumPy per field: no Python loop per packet or
-per point. Conventions (ROS `lidar` frame, vertical offset applied, per-point time) are
-documented in `docs/lidar.md`.
+and turned into points by NumPy, each field written once: no Python loop per packet or
+per point. The points depend on the packets alone; each thread keeps some int64 work
+memory from one call to the next (`_int64_work`). Conventions (ROS `lidar` frame,
+vertical offset applied, per-point time) are documented in `docs/lidar.md`.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -38,20 +40,40 @@ _RECORD = np.arange(m.RECORDS_PER_BLOCK)
 _LASER_OF_RECORD = _RECORD % m.LASERS
 # Firing time of record j after the first firing of its block.
 _T_IN_BLOCK_NS = (_RECORD // m.LASERS) * m.SEQUENCE_NS + _LASER_OF_RECORD * m.LASER_SLOT_NS
+# A record's index in a scan's (packet, block, record) order: the low 5 bits are j.
+_RECORD_BITS = m.RECORDS_PER_BLOCK - 1
+_RECORD_SHIFT = _RECORD_BITS.bit_length()  # index >> 5: the block, counted over the batch
+assert m.RECORDS_PER_BLOCK & _RECORD_BITS == 0
+# With fewer records than this holding a return (a dual-return scan has about half), a
+# point's azimuth and time are cheaper looked up from its block and record than computed
+# for every record and gathered (bench/decode.py: dual return faster, 20 Hz strongest,
+# 96 % of records with a return, slower).
+_PER_POINT_BELOW = 0.75
+# The four one-byte fields that end a point (intensity, ring, return_type, duplicate),
+# seen as one little-endian word: one strided write per point instead of four.
+_TAIL_VIEW = np.dtype({"names": ["tail"], "formats": ["<u4"], "offsets": [24], "itemsize": 28})
+assert [POINT_DTYPE.fields[f][1] for f in ("intensity", "ring", "return_type", "duplicate")] == [
+    24,
+    25,
+    26,
+    27,
+] and POINT_DTYPE.itemsize == _TAIL_VIEW.itemsize
 
 
 @dataclass(frozen=True)
 class _RecordTables:
-    """What a record's place in the packet (block b, record j) says about its point,
-    whatever the packet holds: (12, 32) grids that broadcast over a batch of packets."""
+    """What a record's place in the packet says about its point, whatever the packet
+    holds. Laser terms depend on the record j alone: (32,) tables, looked up per point.
+    Block terms are (12, 32) grids that broadcast over a batch of packets."""
 
-    t_offset_ns: np.ndarray  # firing time after the packet's ToH
-    block_fraction: np.ndarray  # that time in firing blocks, to interpolate the azimuth
-    cos_elevation: np.ndarray
-    sin_elevation: np.ndarray
-    vertical_offset_m: np.ndarray
-    ring: np.ndarray
-    return_type: np.ndarray
+    t_offset_ns: np.ndarray  # (12, 32): firing time after the packet's ToH
+    block_t_offset_ns: np.ndarray  # (12,): the block's first firing after the packet's ToH
+    t_in_block_ns: np.ndarray  # (32,): firing time after the block's first firing
+    block_fraction: np.ndarray  # (32,): that time in firing blocks, to interpolate the azimuth
+    cos_elevation: np.ndarray  # (32,)
+    sin_elevation: np.ndarray  # (32,)
+    vertical_offset_m: np.ndarray  # (32,)
+    tail: np.ndarray  # (12, 32) "<u4": ring and return_type in their bytes of the tail word
 
 
 @lru_cache(maxsize=16)
@@ -59,20 +81,24 @@ def _record_tables(dual: bool, last_return: bool, optics: m.LaserModel) -> _Reco
     block = np.arange(m.BLOCKS_PER_PACKET)[:, None]
     # In dual mode blocks (0,1), (2,3)... are one firing: last return, then strongest.
     firing_block = block // 2 if dual else block
-    laser = np.broadcast_to(_LASER_OF_RECORD, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK))
-    elevation = np.deg2rad(np.asarray(optics.elevation_deg, dtype=np.float64))[laser]
+    elevation = np.deg2rad(np.asarray(optics.elevation_deg, dtype=np.float64))[_LASER_OF_RECORD]
     if dual:
         return_type = np.where(block % 2 == 1, m.RETURN_TYPE_STRONGEST, m.RETURN_TYPE_LAST)
     else:
         return_type = m.RETURN_TYPE_LAST if last_return else m.RETURN_TYPE_STRONGEST
+    ring = optics.ring[_LASER_OF_RECORD].astype(np.uint32)
+    tail = (ring << 8) | (np.asarray(return_type, dtype=np.uint32) << 16)
     return _RecordTables(
         t_offset_ns=(firing_block * m.BLOCK_NS + _T_IN_BLOCK_NS).astype(np.int64),
+        block_t_offset_ns=(firing_block[:, 0] * m.BLOCK_NS).astype(np.int64),
+        t_in_block_ns=_T_IN_BLOCK_NS.astype(np.int64),
         block_fraction=(_T_IN_BLOCK_NS / m.BLOCK_NS).astype(np.float32),
         cos_elevation=np.cos(elevation).astype(np.float32),
         sin_elevation=np.sin(elevation).astype(np.float32),
-        vertical_offset_m=(np.asarray(optics.vertical_offset_mm) / 1000)[laser].astype(np.float32),
-        ring=optics.ring[laser],
-        return_type=np.broadcast_to(return_type, laser.shape).astype(np.uint8),
+        vertical_offset_m=(np.asarray(optics.vertical_offset_mm) / 1000)[_LASER_OF_RECORD].astype(
+            np.float32
+        ),
+        tail=np.broadcast_to(tail, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK)).astype("<u4"),
     )
 
 
@@ -93,6 +119,15 @@ def valid_packets(packets: np.ndarray) -> np.ndarray:
     return flags_ok & azimuth_ok & mode_ok
 
 
+def azimuths_in_range(packets: np.ndarray) -> np.ndarray:
+    """Per packet: all 12 block azimuths in 0..36000 (the part of `valid_packets` that a
+    per-packet check of the flags and return mode leaves)."""
+    azimuth = packets["blocks"]["azimuth"]
+    if azimuth.max(initial=0) <= 36000:  # the usual case, in one reduction
+        return np.ones(len(packets), dtype=bool)
+    return (azimuth <= 36000).all(axis=1)
+
+
 def resolve_hour(toh_us: np.ndarray, t_ref_ns: np.ndarray) -> np.ndarray:
     """Absolute device time (ns since the epoch) of each packet's ToH.
 
@@ -108,6 +143,22 @@ def resolve_hour(toh_us: np.ndarray, t_ref_ns: np.ndarray) -> np.ndarray:
     return np.where(t_ref_ns - t > half_hour, t + m.HOUR_NS, t)
 
 
+_INT64_SAFE = 2**62  # far enough from int64's limits that NumPy's arithmetic cannot wrap
+
+
+def resolve_hour_one(toh_us: int, t_ref_ns: int) -> int:
+    """`resolve_hour` of one ToH, in Python integers: the same result without the cost of
+    NumPy calls on one-element arrays (the batcher needs it once per scan)."""
+    if not (isinstance(t_ref_ns, int) and -_INT64_SAFE < t_ref_ns < _INT64_SAFE):
+        return int(resolve_hour(np.array([toh_us]), np.array([t_ref_ns]))[0])
+    t = t_ref_ns // m.HOUR_NS * m.HOUR_NS + toh_us * 1000
+    if t - t_ref_ns > m.HOUR_NS // 2:
+        return t - m.HOUR_NS
+    if t_ref_ns - t > m.HOUR_NS // 2:
+        return t + m.HOUR_NS
+    return t
+
+
 def lidar_publish_time(payload: bytes, t_host: int) -> int:
     """The recording's `publish_time` of a LiDAR payload: its microseconds past the hour
     (ToH) with the hour from `t_host` (docs/architecture.md, recording format v1)."""
@@ -121,12 +172,98 @@ def lidar_publish_time(payload: bytes, t_host: int) -> int:
     return int(resolve_hour(np.array([toh_us]), np.array([t_host]))[0])
 
 
-def _rotation_rate(firing_azimuth: np.ndarray) -> np.ndarray:
-    """Per packet: rotation in centidegrees per firing block, from the first to the last
-    firing block of the packet (unwrapped across 0). One rate per packet averages out
-    the 0.01 deg quantisation of each block's azimuth."""
-    sweep = (firing_azimuth[:, -1] - firing_azimuth[:, 0]) % 36000
-    return (sweep / (firing_azimuth.shape[1] - 1)).astype(np.float32)
+def _rotation_rate(azimuth: np.ndarray, dual: bool) -> np.ndarray:
+    """Per packet: rotation in centidegrees per firing block, from the azimuth of its
+    first to that of its last firing block (unwrapped across 0). One rate per packet
+    averages out the 0.01 deg quantisation of each block's azimuth."""
+    firings = m.BLOCKS_PER_PACKET // 2 if dual else m.BLOCKS_PER_PACKET
+    last = m.BLOCKS_PER_PACKET - (2 if dual else 1)  # in dual return: block 10
+    sweep = (azimuth[:, last].astype(np.int32) - azimuth[:, 0]) % 36000
+    return (sweep / (firings - 1)).astype(np.float32)
+
+
+def _tail_words(records: np.ndarray, distance: np.ndarray, dual: bool, tables: _RecordTables):
+    """(packets, 12, 32) tail words: reflectivity, ring, return type and the duplicate flag."""
+    words = np.empty(distance.shape, dtype=tables.tail.dtype)
+    words[...] = tables.tail
+    tail_bytes = words.view(np.uint8).reshape(*distance.shape, 4)
+    tail_bytes[..., 0] = records["reflectivity"]
+    if dual:
+        # A single echo is reported by both blocks of the pair: flag the repeat.
+        np.equal(distance[:, 1::2], distance[:, 0::2], out=tail_bytes[:, 1::2, :, 3].view(bool))
+    return words
+
+
+class _IntScratch:
+    """A thread's int64 work memory, kept from one decode to the next. A scan's int64
+    temporaries are its largest; fresh ones are faulted in page by page, and freed
+    after every scan they often go back to the system to be faulted in again
+    (bench/decode.py, dual return: about 1.5 us of 6.5 per packet)."""
+
+    def __init__(self) -> None:
+        self.memory = np.empty(0, dtype=np.int64)
+
+
+_THREAD = threading.local()  # threads decode at once; calls within one never overlap
+# A thread keeps at most this many int64 (3 per record of 512 packets, about 5 MB; a
+# 5 Hz dual-return scan has 302 packets); a batch needing more gets its own.
+_SCRATCH_MAX_INT64 = 3 * 512 * m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
+
+
+def _int64_work(count: int) -> np.ndarray:
+    """`count` uninitialised int64, from the thread's kept memory when it is small enough."""
+    if count > _SCRATCH_MAX_INT64:
+        return np.empty(count, dtype=np.int64)
+    scratch = getattr(_THREAD, "scratch", None)
+    if scratch is None:
+        scratch = _THREAD.scratch = _IntScratch()
+    if scratch.memory.size < count:  # a quarter to spare: scans differ by a packet or two
+        scratch.memory = np.empty(min(count + count // 4, _SCRATCH_MAX_INT64), np.int64)
+    return scratch.memory[:count]
+
+
+def _from_grids(
+    packets: np.ndarray,
+    t_packet_ns: np.ndarray,
+    index: np.ndarray,
+    dual: bool,
+    tables: _RecordTables,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's azimuth (centidegrees, not yet wrapped at 36000) and firing time,
+    computed for every record on (packets, 12, 32) grids and gathered at `index`."""
+    azimuth = packets["blocks"]["azimuth"]
+    rate = _rotation_rate(azimuth, dual)
+    block = azimuth.astype(np.float32)  # exact; spares a per-record cast below
+    centideg = block[:, :, None] + (rate[:, None] * tables.block_fraction)[:, None]
+    work = _int64_work(centideg.size + len(index))
+    t_grid, t = work[: centideg.size], work[centideg.size :]
+    t_packet = np.asarray(t_packet_ns, dtype=np.int64)[:, None, None]
+    np.add(t_packet, tables.t_offset_ns, out=t_grid.reshape(centideg.shape))
+    np.take(t_grid, index, out=t, mode="clip")  # the indices are in range: no checking copy
+    return centideg.reshape(-1).take(index), t
+
+
+def _per_point(
+    packets: np.ndarray,
+    t_packet_ns: np.ndarray,
+    index: np.ndarray,
+    record: np.ndarray,
+    dual: bool,
+    tables: _RecordTables,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's azimuth (centidegrees, not yet wrapped at 36000) and firing time,
+    from its block's azimuth, rate and first firing and its record's share of them."""
+    azimuth = packets["blocks"]["azimuth"]
+    rate = np.repeat(_rotation_rate(azimuth, dual), m.BLOCKS_PER_PACKET)
+    t_block = np.asarray(t_packet_ns, dtype=np.int64)[:, None] + tables.block_t_offset_ns
+    block, t, t_since = _int64_work(3 * len(index)).reshape(3, len(index))
+    np.right_shift(index, _RECORD_SHIFT, out=block)
+    centideg = rate.take(block)
+    centideg *= tables.block_fraction.take(record)
+    centideg += azimuth.astype(np.float32).reshape(-1).take(block)  # u2 to f32 is exact
+    np.take(t_block.reshape(-1), block, out=t, mode="clip")
+    np.add(t, np.take(tables.t_in_block_ns, record, out=t_since, mode="clip"), out=t)
+    return centideg, t
 
 
 def decode_packets(
@@ -139,8 +276,9 @@ def decode_packets(
     Records with distance 0 (no return) are skipped. Points come in packet, block,
     firing sequence, laser order.
 
-    Everything is computed on (packets, 12, 32) grids against constant per-record tables
-    and compressed once by the "has a return" mask: no per-point integer arithmetic.
+    The records with a return are found first; the azimuth and time are gathered from
+    grids over every record or, when few records hold a return, looked up per point; the
+    rest is per point; each field is written once into the output.
     """
     if len(packets) == 0:
         return np.empty(0, dtype=POINT_DTYPE)
@@ -149,38 +287,25 @@ def decode_packets(
     tables = _record_tables(dual, mode == m.RETURN_LAST, optics)
     blocks = packets["blocks"]
     records = blocks["records"]
-    distance = records["distance"]
+    distance = np.ascontiguousarray(records["distance"])
+    index = np.flatnonzero(distance != 0)
+    record = index & _RECORD_BITS
+    points = np.empty(len(index), dtype=POINT_DTYPE)
 
-    # Every field is computed for every record, straight into a (packets, 12, 32) grid
-    # of points; the records with no return are dropped at the end in one compression.
-    # Per-point gathers and per-field compressions cost more than the few empty records.
-    grid = np.empty(distance.shape, dtype=POINT_DTYPE)
-    rng = distance * np.float32(m.DISTANCE_UNIT_M)
-    horizontal = rng * tables.cos_elevation
-
-    rate = _rotation_rate(blocks["azimuth"][:, :: 2 if dual else 1].astype(np.int32))
-    centideg = blocks["azimuth"][:, :, None] + (rate[:, None, None] * tables.block_fraction)
-    centideg[centideg >= 36000] -= 36000
-    azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=grid["azimuth"])
-    np.multiply(horizontal, np.cos(azimuth), out=grid["x"])
-    np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth), out=grid["y"])
-    np.add(rng * tables.sin_elevation, tables.vertical_offset_m, out=grid["z"])
-    np.add(
-        np.asarray(t_packet_ns, dtype=np.int64)[:, None, None],
-        tables.t_offset_ns,
-        out=grid["t"],
-    )
-    grid["intensity"] = records["reflectivity"]
-    grid["ring"] = tables.ring
-    grid["return_type"] = tables.return_type
-    if dual:
-        # A single echo is reported by both blocks of the pair: flag the repeat.
-        grid["duplicate"][:, 0::2] = 0
-        grid["duplicate"][:, 1::2] = distance[:, 1::2] == distance[:, 0::2]
+    rng = distance.reshape(-1).take(index) * np.float32(m.DISTANCE_UNIT_M)
+    if len(index) < _PER_POINT_BELOW * distance.size:
+        centideg, t = _per_point(packets, t_packet_ns, index, record, dual, tables)
     else:
-        grid["duplicate"] = 0
-
-    has_return = (distance != 0).reshape(-1)
-    # Compress whole 28-byte records at once (a void view copies rows as raw bytes).
-    rows = grid.reshape(-1).view(np.dtype((np.void, POINT_DTYPE.itemsize)))
-    return rows[has_return].view(POINT_DTYPE)
+        centideg, t = _from_grids(packets, t_packet_ns, index, dual, tables)
+    points["t"] = t
+    np.subtract(centideg, 36000, out=centideg, where=centideg >= 36000)
+    azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=centideg)
+    points["azimuth"] = azimuth
+    horizontal = rng * tables.cos_elevation.take(record)
+    np.multiply(horizontal, np.cos(azimuth), out=points["x"])
+    np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth), out=points["y"])
+    np.multiply(rng, tables.sin_elevation.take(record), out=rng)
+    np.add(rng, tables.vertical_offset_m.take(record), out=points["z"])
+    tail = points.view(_TAIL_VIEW)["tail"]
+    tail[...] = _tail_words(records, distance, dual, tables).reshape(-1).take(index)
+    return points
