@@ -87,6 +87,9 @@ class TrackedTree:
     height_top_seen: bool = False
 
 
+_MAX_TRUNK_SIGHTINGS = 512
+
+
 @dataclass
 class _Tree:
     traits: PaperTraits | RobustTraits
@@ -97,6 +100,24 @@ class _Tree:
     # x-y of the trunk axis under its crown, one per scan that saw exactly one (the traits
     # frame, as the outline): where the tree stands (`trunk_position`).
     trunks: list[tuple[float, float]] = field(default_factory=list)
+    _trunk_array: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+
+    def add_trunk(self, xy: tuple[float, float]) -> None:
+        self.trunks.append(xy)
+        if len(self.trunks) >= _MAX_TRUNK_SIGHTINGS:
+            # Every other one kept: the places' shares of the sightings stay as they were,
+            # and `trunk_position`'s cost stays bounded for a tree seen for minutes.
+            self.trunks = self.trunks[::2]
+            self._trunk_array = np.empty((0, 2))
+
+    def trunk_array(self) -> np.ndarray:
+        """`trunks` as an N x 2 array, converting only the sightings added since the last
+        call (sightings are only ever appended)."""
+        done = len(self._trunk_array)
+        if done < len(self.trunks):
+            fresh = np.asarray(self.trunks[done:], dtype=float).reshape(-1, 2)
+            self._trunk_array = np.concatenate([self._trunk_array, fresh])
+        return self._trunk_array
 
 
 # Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).
@@ -290,7 +311,9 @@ class TreeMapper:
         tree = self._trees[track.tree_id]
         position = track.state[:3]
         centre = tree.traits.centre()
-        trunk = trunk_position(tree.trunks, self.config.traits, centre, tree.traits.width)
+        trunk = trunk_position(
+            tree.trunk_array(), self.config.traits, track.observations, centre, tree.traits.width
+        )
         if trunk is not None:
             centre = trunk
         x, y = position[0], position[1]
@@ -433,7 +456,7 @@ class TreeMapper:
             if cluster.trunk is not None:
                 trunk = traits_from_base[:2, :3] @ cluster.trunk + traits_from_base[:2, 3]
                 if centres.nearest_is(trunk[None], tree_id)[0]:  # not a neighbour's
-                    tree.trunks.append((float(trunk[0]), float(trunk[1])))
+                    tree.add_trunk((float(trunk[0]), float(trunk[1])))
         tree.traits.observe(points, ring, cluster.ground_z, world_points, ground_world, pose_sigma)
         # The cluster's top in view counts for this tree if that top is its own.
         if cluster.top_seen and own[int(np.argmax(cluster.points[:, 2]))]:
@@ -511,43 +534,55 @@ class TreeMapper:
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
         tree.top_seen = tree.top_seen or gone.top_seen
-        tree.trunks += gone.trunks
+        for sighting in gone.trunks:
+            tree.add_trunk(sighting)
 
 
 def trunk_position(
-    trunks: list[tuple[float, float]],
+    trunks: np.ndarray | list[tuple[float, float]],
     config: TraitsConfig,
+    scans: int = 0,
     crown_centre: np.ndarray | None = None,
     crown_width: float = float("nan"),
 ) -> np.ndarray | None:
     """Where a tree stands: the mean of the trunk sightings (x-y, one per scan) that lie
-    within `trunk_agree_m` of the sighting with the most such neighbours, when those are
-    at least `trunk_min_scans` and a majority of its sightings; else None (the crown
-    outline's centre stands in). A trunk is one place seen again scan after scan, while a
-    weed clump or a neighbour's trunk taken for it now and then is elsewhere. With the
-    crown's outline (`crown_centre`, `crown_width`), only a place within
-    `trunk_reach_share` of the width from its centre can be the trunk; the sightings
-    elsewhere still count against it (a trunk mostly hidden behind weeds is not told
-    from the weeds' sightings: the outline's centre stands in)."""
+    within `trunk_agree_m` of the best supported place, when those are at least
+    `trunk_min_scans`, more than half of all its sightings and at least
+    `trunk_min_share` of the `scans` that observed the tree; else None (the crown
+    outline's centre stands in). A trunk is one place seen again scan after scan, while
+    a weed clump or a neighbour's trunk taken for it is seen now and then, elsewhere.
+    With the crown's outline (`crown_centre`, `crown_width`), that place must also lie
+    under the crown: within `trunk_reach_share` of the width from its centre."""
     if config.trunk_min_scans <= 0 or len(trunks) < config.trunk_min_scans:
         return None
-    xy = np.asarray(trunks, dtype=float)
-    # Candidates: at most ~64 of the sightings (a tree seen for minutes has hundreds), so
-    # the cost stays linear in them.
-    candidates = xy[:: max(1, len(xy) // 64)]
-    if crown_centre is not None and np.isfinite(crown_width):
-        off = candidates - crown_centre
-        reach = config.trunk_reach_share * crown_width
-        candidates = candidates[np.hypot(off[:, 0], off[:, 1]) <= reach]
-    if len(candidates) == 0:
-        return None
+    xy = np.asarray(trunks, dtype=float).reshape(-1, 2)
+    candidates = _crowded_places(xy, config.trunk_agree_m)
     gaps = candidates[:, None, :] - xy[None, :, :]
     close = np.hypot(gaps[..., 0], gaps[..., 1]) <= config.trunk_agree_m
     support = close.sum(axis=1)
     best = int(np.argmax(support))
-    if support[best] < config.trunk_min_scans or 2 * support[best] <= len(xy):
+    agreeing = int(support[best])
+    if agreeing < max(config.trunk_min_scans, config.trunk_min_share * scans):
         return None
-    return xy[close[best]].mean(axis=0)
+    if 2 * agreeing <= len(xy):
+        return None
+    position = xy[close[best]].mean(axis=0)
+    outlined = crown_centre is not None and np.isfinite(crown_width)
+    if outlined and np.hypot(*(position - crown_centre)) > config.trunk_reach_share * crown_width:
+        return None
+    return position
+
+
+def _crowded_places(xy: np.ndarray, cell: float, places: int = 8) -> np.ndarray:
+    """The mean sighting of each of the `places` grid cells (of size `cell`) holding the
+    most sightings: where the best supported place can be, found in O(n log n) (a tree
+    seen for minutes has hundreds of sightings, and the mapper asks every scan)."""
+    cells = np.floor(xy / cell).astype(np.int64)
+    keys = (cells[:, 0] << 32) + cells[:, 1]  # one int64 per cell (|cell| < 2^31)
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    top = np.argsort(-counts, kind="stable")[:places]
+    sums = np.column_stack([np.bincount(inverse, weights=xy[:, k]) for k in range(2)])
+    return sums[top] / counts[top, None]
 
 
 def _position_sigma(pose: Pose | None) -> float | None:

@@ -389,29 +389,33 @@ def test_scans_taken_while_turning_fast_add_nothing_to_the_outline():
 
 def test_a_tree_stands_where_most_of_its_trunk_sightings_agree():
     """`trunk_position`: the sightings that agree within `trunk_agree_m` of the best
-    supported one, when they are enough and a majority; a weed clump or a neighbour's
-    trunk taken for the trunk now and then does not move the tree."""
-    config = TraitsConfig()  # 3 sightings, 0.25 m
+    supported place, when they are enough, a majority, a share of the tree's scans, and
+    under its crown; a weed clump or a neighbour's trunk taken for the trunk now and then
+    does not move the tree."""
+    config = TraitsConfig()  # 3 sightings, 0.25 m, 5 % of the scans, half the width
     rng = np.random.default_rng(1)
     trunk = np.array([10.0, -4.0])
-    sightings = [tuple(trunk + rng.normal(0, 0.03, 2)) for _ in range(20)]
-    weed = [tuple(np.array([10.6, -3.7]) + rng.normal(0, 0.03, 2)) for _ in range(8)]
-    found = trunk_position(sightings + weed, config)
+
+    def seen(place, n):
+        return [tuple(np.array(place) + rng.normal(0, 0.03, 2)) for _ in range(n)]
+
+    sightings = seen(trunk, 20)
+    weed = seen((10.6, -3.7), 8)
+    found = trunk_position(sightings + weed, config, scans=100)
     assert np.hypot(*(found - trunk)) < 0.03
     assert np.hypot(*(found - trunk)) < np.hypot(*(np.mean(sightings + weed, axis=0) - trunk))
     assert trunk_position(sightings[:2], config) is None  # too few: the outline stands in
     # No majority: as many sightings elsewhere as at the best place.
     assert trunk_position(sightings[:8] + weed, config) is None
+    # A place sighted in 20 of 1000 scans (2 %) is a clump glimpsed now and then.
+    assert trunk_position(sightings, config, scans=1000) is None
     assert trunk_position(sightings, dataclasses.replace(config, trunk_min_scans=0)) is None
-    # A weed clump at the crown's edge seen more often than the trunk is taken for it;
-    # once the crown's outline is known (centre 0.1 m off the trunk, 2.8 m wide) it is
-    # no candidate, and the trunk, short of a majority, is not trusted either.
-    edge = [tuple(np.array([11.5, -4.2]) + rng.normal(0, 0.03, 2)) for _ in range(30)]
-    assert np.hypot(*(trunk_position(sightings + edge, config) - (11.5, -4.2))) < 0.03
+    # A weed clump past the crown's edge (1.5 m from a centre 0.1 m off the trunk, the
+    # crown 2.8 m wide), seen more often than the trunk, is no trunk.
+    edge = seen((11.5, -4.2), 30)
     crown = trunk + np.array([0.1, 0.0])
-    assert trunk_position(sightings + edge, config, crown, 2.8) is None
-    found = trunk_position(sightings + edge[:10], config, crown, 2.8)
-    assert np.hypot(*(found - trunk)) < 0.03
+    assert np.hypot(*(trunk_position(sightings + edge, config) - (11.5, -4.2))) < 0.03
+    assert trunk_position(sightings + edge, config, 100, crown, 2.8) is None
     # Hundreds of sightings (a tree seen for minutes): the same place.
-    many = [tuple(trunk + rng.normal(0, 0.03, 2)) for _ in range(600)]
-    assert np.hypot(*(trunk_position(many, config) - trunk)) < 0.01
+    many = seen(trunk, 600)
+    assert np.hypot(*(trunk_position(many, config, 1000, crown, 2.8) - trunk)) < 0.01
