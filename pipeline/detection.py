@@ -228,6 +228,15 @@ def voxel_grid(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     return inverse, centroids
 
 
+def stable_order(labels: np.ndarray) -> np.ndarray:
+    """`np.argsort(labels, kind="stable")` of integer labels. Labels that fit in int16 (a
+    scan's clusters do) are sorted as int16: NumPy sorts 16-bit integers stably by radix,
+    ~8x faster than int64 on a scan's points, and a stable order is the same order."""
+    if len(labels) and labels.min() >= -(2**15) and labels.max() < 2**15:
+        return np.argsort(labels.astype(np.int16), kind="stable")
+    return np.argsort(labels, kind="stable")
+
+
 def hull_area_volume(xyz: np.ndarray) -> tuple[float, float]:
     """Surface area and volume of the 3D convex hull; (0, 0) when it is degenerate."""
     if len(xyz) < 4:
@@ -382,7 +391,7 @@ def split_at_trunks(
     looked at (a single crown, even an old one, has one trunk). Returns the new voxel
     labels and how many clusters were cut."""
     clustered = np.flatnonzero(labels >= 0)
-    order = clustered[np.argsort(labels[clustered], kind="stable")]
+    order = clustered[stable_order(labels[clustered])]
     starts = np.flatnonzero(np.diff(labels[order], prepend=-2))
     long = [
         cells
@@ -516,13 +525,12 @@ def _band_blobs(
     if len(band_xyz) < config.min_trunk_points:
         return []
     xy = band_xyz[:, :2]
-    blob = euclidean_clusters(np.column_stack([xy, np.zeros(len(xy))]), 0.25)
+    # Clustered in x-y alone: the same pairs as with z = 0, one dimension less to search.
     found = []
-    for b in np.unique(blob):
-        mine = blob == b
-        part = xy[mine]
-        if len(part) < config.min_trunk_points:
+    for mine in _groups(euclidean_clusters(xy, 0.25)):
+        if len(mine) < config.min_trunk_points:
             continue
+        part = xy[mine]
         if horizontal_extent(part) > config.max_trunk_width_m:
             continue  # a skirt hanging into the band, a weed: not a trunk
         centre = part.mean(axis=0)
@@ -530,6 +538,14 @@ def _band_blobs(
         rough = roughness(band_xyz[mine], band_ring[mine], lidar_xy)
         found.append(BandBlob(len(part), centre, _axis(part, centre, z, lidar_xy), rough))
     return found
+
+
+def _groups(labels: np.ndarray) -> list[np.ndarray]:
+    """Indices of each label's members, labels in increasing order, members in index
+    order (as `labels == b` would give them): one stable sort, not a mask per label."""
+    order = stable_order(labels)
+    starts = np.flatnonzero(np.diff(labels[order])) + 1
+    return np.split(order, starts) if len(order) else []
 
 
 def _axis(xy: np.ndarray, centre: np.ndarray, z: float, lidar_xy: np.ndarray) -> np.ndarray:
@@ -577,9 +593,9 @@ def _features(
     trunks: dict[int, np.ndarray],
 ) -> list[Cluster]:
     point_label = labels[voxel_of]
-    order = np.argsort(point_label, kind="stable")
+    order = stable_order(point_label)
     bounds = np.searchsorted(point_label[order], np.stack([kept, kept + 1]))
-    voxel_order = np.argsort(labels, kind="stable")
+    voxel_order = stable_order(labels)
     voxel_bounds = np.searchsorted(labels[voxel_order], np.stack([kept, kept + 1]))
     clusters = []
     for k in range(len(kept)):

@@ -39,7 +39,9 @@ class BeamsAbove:
         y = points["y"].astype(float)
         z = points["z"].astype(float)
         bearing = np.arctan2(y, x)
-        order = np.argsort(ring, kind="stable")
+        # Sorted as the uint8 rings they are: NumPy's stable sort of bytes is a radix
+        # sort, several times faster than of int64, and the order is the same.
+        order = np.argsort(points["ring"], kind="stable")
         self.top_ring = max(TOP_RING, int(ring.max()) if len(ring) else 0)
         self._bearing = bearing[order]
         self._range = np.sqrt(x * x + y * y + z * z)[order]
