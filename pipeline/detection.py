@@ -601,15 +601,16 @@ def _features(
             if len(finite):
                 mean_ndvi = float(finite.mean())
         ground_z = float(ground.z_at(centroid[0], centroid[1]))
-        shape = shape_of(xyz[members], ring[members], lidar_xy, ground_z, values)
+        points, rings = xyz[members], ring[members]  # gathered once for both uses
+        shape = shape_of(points, rings, lidar_xy, ground_z, values)
         clusters.append(
             Cluster(
                 centroid=centroid,
                 num_points=len(cells),
                 ndvi=mean_ndvi,
                 voxels=cells,
-                points=xyz[members],
-                ring=ring[members],
+                points=points,
+                ring=rings,
                 ground_z=ground_z,
                 shape=shape,
                 verdict=judge(shape, classify),
