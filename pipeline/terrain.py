@@ -54,12 +54,16 @@ class TerrainGrid:
         j = np.minimum(fy.astype(np.int64), ny - 2) if ny > 1 else np.zeros_like(fy, np.int64)
         tx, ty = fx - i, fy - j
         i1, j1 = np.minimum(i + 1, nx - 1), np.minimum(j + 1, ny - 1)
-        z = self.z
+        # The same products in the same order; 1 - t once each and the corners read from
+        # the flat grid (cheaper than 2-D fancy indexing).
+        z = self.z.ravel()
+        sx, sy = 1 - tx, 1 - ty
+        row, row1 = i * ny, i1 * ny
         out = (
-            z[i, j] * (1 - tx) * (1 - ty)
-            + z[i1, j] * tx * (1 - ty)
-            + z[i, j1] * (1 - tx) * ty
-            + z[i1, j1] * tx * ty
+            z[row + j] * sx * sy
+            + z[row1 + j] * tx * sy
+            + z[row + j1] * sx * ty
+            + z[row1 + j1] * tx * ty
         )
         return float(out) if np.ndim(out) == 0 else out
 
