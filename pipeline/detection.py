@@ -25,7 +25,7 @@ from treetraits.pipeline.config import (
     DetectionConfig,
     GroundConfig,
 )
-from treetraits.pipeline.stems import find_stems, stem_of_voxels
+from treetraits.pipeline.stems import StemSearch, stem_of_voxels
 from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
 from treetraits.pipeline.understorey import join_understorey
 from treetraits.pipeline.visibility import BeamsAbove
@@ -461,7 +461,9 @@ def _stems(
         return np.full(len(voxels), -1, dtype=np.int64), [False] * len(blobs)
     centres = np.array([blob.centre for blob in blobs]).reshape(-1, 2)
     band_top = cluster.trunk_band_m[1]
-    stems = find_stems(xyz, height, ring, lidar_xyz, centres, band_top, cluster, config.classify)
+    # One search for both bands: what depends on the scan's returns is worked out once.
+    search = StemSearch(xyz, height, ring, lidar_xyz, cluster)
+    stems = search.find(centres, band_top, config.classify)
     is_stem = [any(np.array_equal(c, stem.centre) for stem in stems) for c in centres]
     # A post or a person whose foot stands in a weed clump (where the mower cannot reach)
     # is no blob in the trunk band: seed it again just above the understorey.
@@ -474,9 +476,7 @@ def _stems(
     ]
     if seeds:
         seed_top = stem_seed_band(cluster)[1]
-        stems += find_stems(
-            xyz, height, ring, lidar_xyz, np.array(seeds), seed_top, cluster, config.classify
-        )
+        stems += search.find(np.array(seeds), seed_top, config.classify)
     return stem_of_voxels(voxels, voxel_height, stems, cluster), is_stem
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -61,26 +62,62 @@ def find_stems(
     `band_top` above the terrain (the trunk band, or the seed band above the
     understorey). `xyz` the scan's returns clear of the ground (`base`), `height` above
     the terrain, `ring` each one's; `lidar_xyz` the LiDAR's origin (`base`)."""
-    stems: list[Stem] = []
-    if len(xyz) == 0 or len(blob_centres) == 0:
+    search = StemSearch(xyz, height, ring, lidar_xyz, config)
+    return search.find(blob_centres, band_top, classify)
+
+
+class StemSearch:
+    """`find_stems` over one scan's returns for several bands: what depends on the
+    returns alone (the top ring's slope, the cells) is worked out once, when first needed."""
+
+    def __init__(
+        self,
+        xyz: np.ndarray,
+        height: np.ndarray,
+        ring: np.ndarray,
+        lidar_xyz: np.ndarray,
+        config: ClusterConfig,
+    ):
+        self.xyz, self.height, self.ring, self.lidar_xyz = xyz, height, ring, lidar_xyz
+        self.config = config
+
+    @cached_property
+    def top_slope(self) -> float:
+        """The highest ring's elevation (+15 deg on a VLP-16, +10 on a Puck Hi-Res): a
+        column near the robot runs out of the field of view before it reaches its top."""
+        xyz, lidar_xyz = self.xyz, self.lidar_xyz
+        reach_all = np.hypot(xyz[:, 0] - lidar_xyz[0], xyz[:, 1] - lidar_xyz[1])
+        return float(np.max((xyz[:, 2] - lidar_xyz[2]) / np.maximum(reach_all, 0.1)))
+
+    @cached_property
+    def cells(self) -> _Cells:
+        return _Cells(self.xyz[:, :2], self.config.stem_clearance_m)
+
+    def find(
+        self, blob_centres: np.ndarray, band_top: float, classify: ClassifyConfig
+    ) -> list[Stem]:
+        """`find_stems` for these blobs and this band."""
+        stems: list[Stem] = []
+        if len(self.xyz) == 0 or len(blob_centres) == 0:
+            return stems
+        for centre in blob_centres:
+            # Only the returns within the clearance can be in the column or around it:
+            # those of the cells around the centre, in their order in the scan.
+            mine = self.cells.around(centre)
+            found = _stem_at(
+                centre,
+                self.xyz[mine],
+                self.height[mine],
+                self.ring[mine],
+                self.lidar_xyz,
+                self.top_slope,
+                band_top,
+                self.config,
+                classify,
+            )
+            if found is not None:
+                stems.append(found)
         return stems
-    lidar_xy = lidar_xyz[:2]
-    # The highest ring's elevation (+15 deg on a VLP-16, +10 on a Puck Hi-Res): a column
-    # near the robot runs out of the field of view before it reaches its top.
-    reach_all = np.hypot(xyz[:, 0] - lidar_xy[0], xyz[:, 1] - lidar_xy[1])
-    top_slope = float(np.max((xyz[:, 2] - lidar_xyz[2]) / np.maximum(reach_all, 0.1)))
-    cells = _Cells(xyz[:, :2], config.stem_clearance_m)
-    for centre in blob_centres:
-        # Only the returns within the clearance can be in the column or around it: those
-        # of the cells around the centre, in their order in the scan.
-        mine = cells.around(centre)
-        sub_xyz, sub_height, sub_ring = xyz[mine], height[mine], ring[mine]
-        found = _stem_at(
-            centre, sub_xyz, sub_height, sub_ring, lidar_xyz, top_slope, band_top, config, classify
-        )
-        if found is not None:
-            stems.append(found)
-    return stems
 
 
 def _stem_at(
