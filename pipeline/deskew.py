@@ -113,7 +113,9 @@ def deskew_scan(
 ) -> Scan:
     """The scan with every point de-skewed to `t_ref` (host clock); other fields kept."""
     points = scan.points.copy()
-    xyz = np.stack([points["x"], points["y"], points["z"]], axis=1)
+    # Straight into float64, as `deskew` works (one conversion, not a float32 stack first).
+    xyz = np.empty((len(points), 3))
+    xyz[:, 0], xyz[:, 1], xyz[:, 2] = points["x"], points["y"], points["z"]
     moved = deskew(
         xyz, scan_point_host_times(scan), sample_times, sample_poses, t_ref, T_base_lidar
     )

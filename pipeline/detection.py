@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from treetraits.pipeline.classify import Shape, horizontal_extent, judge, roughness, shape_of
-from treetraits.pipeline.clustering import euclidean_clusters
+from treetraits.pipeline.clustering import euclidean_clusters, stable_order
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -25,7 +25,7 @@ from treetraits.pipeline.config import (
     DetectionConfig,
     GroundConfig,
 )
-from treetraits.pipeline.stems import find_stems, stem_of_voxels
+from treetraits.pipeline.stems import StemSearch, stem_of_voxels
 from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
 from treetraits.pipeline.understorey import join_understorey
 from treetraits.pipeline.visibility import BeamsAbove
@@ -382,7 +382,7 @@ def split_at_trunks(
     looked at (a single crown, even an old one, has one trunk). Returns the new voxel
     labels and how many clusters were cut."""
     clustered = np.flatnonzero(labels >= 0)
-    order = clustered[np.argsort(labels[clustered], kind="stable")]
+    order = clustered[stable_order(labels[clustered])]
     starts = np.flatnonzero(np.diff(labels[order], prepend=-2))
     long = [
         cells
@@ -461,7 +461,9 @@ def _stems(
         return np.full(len(voxels), -1, dtype=np.int64), [False] * len(blobs)
     centres = np.array([blob.centre for blob in blobs]).reshape(-1, 2)
     band_top = cluster.trunk_band_m[1]
-    stems = find_stems(xyz, height, ring, lidar_xyz, centres, band_top, cluster, config.classify)
+    # One search for both bands: what depends on the scan's returns is worked out once.
+    search = StemSearch(xyz, height, ring, lidar_xyz, cluster)
+    stems = search.find(centres, band_top, config.classify)
     is_stem = [any(np.array_equal(c, stem.centre) for stem in stems) for c in centres]
     # A post or a person whose foot stands in a weed clump (where the mower cannot reach)
     # is no blob in the trunk band: seed it again just above the understorey.
@@ -474,9 +476,7 @@ def _stems(
     ]
     if seeds:
         seed_top = stem_seed_band(cluster)[1]
-        stems += find_stems(
-            xyz, height, ring, lidar_xyz, np.array(seeds), seed_top, cluster, config.classify
-        )
+        stems += search.find(np.array(seeds), seed_top, config.classify)
     return stem_of_voxels(voxels, voxel_height, stems, cluster), is_stem
 
 
@@ -516,13 +516,12 @@ def _band_blobs(
     if len(band_xyz) < config.min_trunk_points:
         return []
     xy = band_xyz[:, :2]
-    blob = euclidean_clusters(np.column_stack([xy, np.zeros(len(xy))]), 0.25)
+    # Clustered in x-y alone: the same pairs as with z = 0, one dimension less to search.
     found = []
-    for b in np.unique(blob):
-        mine = blob == b
-        part = xy[mine]
-        if len(part) < config.min_trunk_points:
+    for mine in _groups(euclidean_clusters(xy, 0.25)):
+        if len(mine) < config.min_trunk_points:
             continue
+        part = xy[mine]
         if horizontal_extent(part) > config.max_trunk_width_m:
             continue  # a skirt hanging into the band, a weed: not a trunk
         centre = part.mean(axis=0)
@@ -530,6 +529,14 @@ def _band_blobs(
         rough = roughness(band_xyz[mine], band_ring[mine], lidar_xy)
         found.append(BandBlob(len(part), centre, _axis(part, centre, z, lidar_xy), rough))
     return found
+
+
+def _groups(labels: np.ndarray) -> list[np.ndarray]:
+    """Indices of each label's members, labels in increasing order, members in index
+    order (as `labels == b` would give them): one stable sort, not a mask per label."""
+    order = stable_order(labels)
+    starts = np.flatnonzero(np.diff(labels[order])) + 1
+    return np.split(order, starts) if len(order) else []
 
 
 def _axis(xy: np.ndarray, centre: np.ndarray, z: float, lidar_xy: np.ndarray) -> np.ndarray:
@@ -577,9 +584,9 @@ def _features(
     trunks: dict[int, np.ndarray],
 ) -> list[Cluster]:
     point_label = labels[voxel_of]
-    order = np.argsort(point_label, kind="stable")
+    order = stable_order(point_label)
     bounds = np.searchsorted(point_label[order], np.stack([kept, kept + 1]))
-    voxel_order = np.argsort(labels, kind="stable")
+    voxel_order = stable_order(labels)
     voxel_bounds = np.searchsorted(labels[voxel_order], np.stack([kept, kept + 1]))
     clusters = []
     for k in range(len(kept)):
@@ -594,15 +601,16 @@ def _features(
             if len(finite):
                 mean_ndvi = float(finite.mean())
         ground_z = float(ground.z_at(centroid[0], centroid[1]))
-        shape = shape_of(xyz[members], ring[members], lidar_xy, ground_z, values)
+        points, rings = xyz[members], ring[members]  # gathered once for both uses
+        shape = shape_of(points, rings, lidar_xy, ground_z, values)
         clusters.append(
             Cluster(
                 centroid=centroid,
                 num_points=len(cells),
                 ndvi=mean_ndvi,
                 voxels=cells,
-                points=xyz[members],
-                ring=ring[members],
+                points=points,
+                ring=rings,
                 ground_z=ground_z,
                 shape=shape,
                 verdict=judge(shape, classify),

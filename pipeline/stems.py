@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from treetraits.pipeline.classify import roughness
+from treetraits.pipeline.classify import median, roughness
+from treetraits.pipeline.clustering import stable_order
 from treetraits.pipeline.config import ClassifyConfig, ClusterConfig
 
 # The VLP-16's rings are 2 deg apart: on an upright surface at range r they land
@@ -60,44 +62,138 @@ def find_stems(
     `band_top` above the terrain (the trunk band, or the seed band above the
     understorey). `xyz` the scan's returns clear of the ground (`base`), `height` above
     the terrain, `ring` each one's; `lidar_xyz` the LiDAR's origin (`base`)."""
-    stems: list[Stem] = []
-    if len(xyz) == 0:
+    search = StemSearch(xyz, height, ring, lidar_xyz, config)
+    return search.find(blob_centres, band_top, classify)
+
+
+class StemSearch:
+    """`find_stems` over one scan's returns for several bands: what depends on the
+    returns alone (the top ring's slope, the cells) is worked out once, when first needed."""
+
+    def __init__(
+        self,
+        xyz: np.ndarray,
+        height: np.ndarray,
+        ring: np.ndarray,
+        lidar_xyz: np.ndarray,
+        config: ClusterConfig,
+    ):
+        self.xyz, self.height, self.ring, self.lidar_xyz = xyz, height, ring, lidar_xyz
+        self.config = config
+
+    @cached_property
+    def top_slope(self) -> float:
+        """The highest ring's elevation (+15 deg on a VLP-16, +10 on a Puck Hi-Res): a
+        column near the robot runs out of the field of view before it reaches its top."""
+        xyz, lidar_xyz = self.xyz, self.lidar_xyz
+        reach_all = np.hypot(xyz[:, 0] - lidar_xyz[0], xyz[:, 1] - lidar_xyz[1])
+        return float(np.max((xyz[:, 2] - lidar_xyz[2]) / np.maximum(reach_all, 0.1)))
+
+    @cached_property
+    def cells(self) -> _Cells:
+        return _Cells(self.xyz[:, :2], self.config.stem_clearance_m)
+
+    def find(
+        self, blob_centres: np.ndarray, band_top: float, classify: ClassifyConfig
+    ) -> list[Stem]:
+        """`find_stems` for these blobs and this band."""
+        stems: list[Stem] = []
+        if len(self.xyz) == 0 or len(blob_centres) == 0:
+            return stems
+        for centre in blob_centres:
+            # Only the returns within the clearance can be in the column or around it:
+            # those of the cells around the centre, in their order in the scan.
+            mine = self.cells.around(centre)
+            found = _stem_at(
+                centre,
+                self.xyz[mine],
+                self.height[mine],
+                self.ring[mine],
+                self.lidar_xyz,
+                self.top_slope,
+                band_top,
+                self.config,
+                classify,
+            )
+            if found is not None:
+                stems.append(found)
         return stems
+
+
+def _stem_at(
+    centre: np.ndarray,
+    xyz: np.ndarray,
+    height: np.ndarray,
+    ring: np.ndarray,
+    lidar_xyz: np.ndarray,
+    top_slope: float,
+    band_top: float,
+    config: ClusterConfig,
+    classify: ClassifyConfig,
+) -> Stem | None:
+    """The stem over one blob's centre, or None; `xyz` holds at least every return
+    within `stem_clearance_m` of it (x-y)."""
+    gap = np.hypot(xyz[:, 0] - centre[0], xyz[:, 1] - centre[1])
+    near = gap <= config.stem_radius_m
+    above = near & (height > band_top)
+    if not above.any():
+        return None
     lidar_xy = lidar_xyz[:2]
-    # The highest ring's elevation (+15 deg on a VLP-16, +10 on a Puck Hi-Res): a column
-    # near the robot runs out of the field of view before it reaches its top.
-    reach_all = np.hypot(xyz[:, 0] - lidar_xy[0], xyz[:, 1] - lidar_xy[1])
-    top_slope = float(np.max((xyz[:, 2] - lidar_xyz[2]) / np.maximum(reach_all, 0.1)))
-    for centre in blob_centres:
-        gap = np.hypot(xyz[:, 0] - centre[0], xyz[:, 1] - centre[1])
-        near = gap <= config.stem_radius_m
-        above = near & (height > band_top)
-        if not above.any():
-            continue
-        reach = float(np.hypot(*(centre - lidar_xy)))
-        top = column_top(height[above], band_top, max_gap_m(reach, config.voxel_m))
-        # What the sensor can see of a column here: up to its highest ring, less a ring
-        # gap (a post's top ring can fall beside it).
-        terrain_z = float(np.median(xyz[above, 2] - height[above]))
-        in_view = lidar_xyz[2] - terrain_z + reach * (top_slope - math.tan(_RING_GAP_RAD))
-        needed = min(config.min_stem_height_m, in_view)
-        # A column cut short by the field of view below a tree's least height proves
-        # nothing: a weed, a trunk and a person look alike that low.
-        if needed < classify.min_height_m or top < needed:
-            continue
-        # Judged above the skirts: there a tree's column is foliage, a post's still wood.
-        column = above & (height <= top) & (height >= config.stem_judged_from_m)
-        # Standing clear: a trunk's column is inside its crown and a weed under a skirt
-        # has the crown's side around it, where a post or a person has air.
-        around = (gap > config.stem_radius_m) & (gap <= config.stem_clearance_m)
-        around &= (height >= config.stem_judged_from_m) & (height <= top)
-        if around.sum() > config.max_stem_surround_share * column.sum():
-            continue
-        rough = roughness(xyz[column], ring[column], lidar_xy)
-        # Too few returns along the rings to say (NaN): not cut, a tree keeps its trunk.
-        if math.isfinite(rough) and rough < classify.min_roughness_m:
-            stems.append(Stem(np.asarray(centre, dtype=float), top, rough))
-    return stems
+    reach = float(np.hypot(*(centre - lidar_xy)))
+    top = column_top(height[above], band_top, max_gap_m(reach, config.voxel_m))
+    # What the sensor can see of a column here: up to its highest ring, less a ring
+    # gap (a post's top ring can fall beside it).
+    terrain_z = median(xyz[above, 2] - height[above])
+    in_view = lidar_xyz[2] - terrain_z + reach * (top_slope - math.tan(_RING_GAP_RAD))
+    needed = min(config.min_stem_height_m, in_view)
+    # A column cut short by the field of view below a tree's least height proves
+    # nothing: a weed, a trunk and a person look alike that low.
+    if needed < classify.min_height_m or top < needed:
+        return None
+    # Judged above the skirts: there a tree's column is foliage, a post's still wood.
+    column = above & (height <= top) & (height >= config.stem_judged_from_m)
+    # Standing clear: a trunk's column is inside its crown and a weed under a skirt
+    # has the crown's side around it, where a post or a person has air.
+    around = (gap > config.stem_radius_m) & (gap <= config.stem_clearance_m)
+    around &= (height >= config.stem_judged_from_m) & (height <= top)
+    if around.sum() > config.max_stem_surround_share * column.sum():
+        return None
+    rough = roughness(xyz[column], ring[column], lidar_xy)
+    # Too few returns along the rings to say (NaN): not cut, a tree keeps its trunk.
+    if math.isfinite(rough) and rough < classify.min_roughness_m:
+        return Stem(np.asarray(centre, dtype=float), top, rough)
+    return None
+
+
+class _Cells:
+    """A scan's returns binned on a coarse x-y grid, to gather those near a spot without
+    a pass over all of them per spot (a scan has tens of blobs and ~20k returns)."""
+
+    def __init__(self, xy: np.ndarray, reach: float):
+        # Cells a little wider than the reach: a return within it of a spot is in the
+        # spot's cell or the next one in each direction, whatever the rounding.
+        self.size = reach + 0.05
+        self.origin = xy.min(axis=0)
+        ij = np.floor((xy - self.origin) / self.size).astype(np.int64)
+        self.shape = ij.max(axis=0) + 1
+        cell = ij[:, 0] * self.shape[1] + ij[:, 1]
+        self.order = stable_order(cell)
+        self.sorted_cells = cell[self.order]
+
+    def around(self, spot: np.ndarray) -> np.ndarray:
+        """Indices (increasing) of the returns in the 3 x 3 cells around `spot`: every
+        return within `reach` of it, and some farther."""
+        i, j = np.floor((np.asarray(spot) - self.origin) / self.size).astype(np.int64)
+        j_low, j_high = max(j - 1, 0), min(j + 1, self.shape[1] - 1)
+        parts = []
+        for row in range(max(i - 1, 0), min(i + 1, self.shape[0] - 1) + 1):
+            if j_low <= j_high:
+                lo, hi = np.searchsorted(
+                    self.sorted_cells,
+                    (row * self.shape[1] + j_low, row * self.shape[1] + j_high + 1),
+                )
+                parts.append(self.order[lo:hi])
+        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
 
 
 def max_gap_m(reach_m: float, voxel_m: float) -> float:
@@ -108,12 +204,14 @@ def max_gap_m(reach_m: float, voxel_m: float) -> float:
 def column_top(heights: np.ndarray, start_m: float, max_gap: float) -> float:
     """Climb from `start_m` through `heights` while no gap exceeds `max_gap`; the last
     height reached (`start_m` when the first return is already too far up)."""
-    top = start_m
-    for h in np.sort(heights):
-        if h - top > max_gap:
-            break
-        top = max(top, float(h))
-    return top
+    climbed = np.sort(heights)
+    # Sorted, the height reached before each return is the start or the return below it,
+    # whichever is higher: the climb's steps all at once, not a Python loop per return.
+    reached = np.maximum(np.concatenate(([start_m], climbed[:-1])), start_m)
+    too_far = np.flatnonzero(climbed - reached > max_gap)
+    if len(too_far):
+        return float(reached[too_far[0]])
+    return max(start_m, float(climbed[-1])) if len(climbed) else start_m
 
 
 def stem_of_voxels(

@@ -54,12 +54,16 @@ class TerrainGrid:
         j = np.minimum(fy.astype(np.int64), ny - 2) if ny > 1 else np.zeros_like(fy, np.int64)
         tx, ty = fx - i, fy - j
         i1, j1 = np.minimum(i + 1, nx - 1), np.minimum(j + 1, ny - 1)
-        z = self.z
+        # The same products in the same order; 1 - t once each and the corners read from
+        # the flat grid (cheaper than 2-D fancy indexing).
+        z = self.z.ravel()
+        sx, sy = 1 - tx, 1 - ty
+        row, row1 = i * ny, i1 * ny
         out = (
-            z[i, j] * (1 - tx) * (1 - ty)
-            + z[i1, j] * tx * (1 - ty)
-            + z[i, j1] * (1 - tx) * ty
-            + z[i1, j1] * tx * ty
+            z[row + j] * sx * sy
+            + z[row1 + j] * tx * sy
+            + z[row + j1] * sx * ty
+            + z[row1 + j1] * tx * ty
         )
         return float(out) if np.ndim(out) == 0 else out
 
@@ -170,16 +174,16 @@ def _median3(ground: np.ndarray) -> np.ndarray:
     trunk's or a post's foot in a cell without soil returns sits a few cm up; a median
     drops such a one-cell bump and keeps slopes and furrows (NaN: not ground)."""
     padded = np.pad(ground, 1, constant_values=np.nan)
-    nx, ny = ground.shape
-    stack = np.stack(
-        [padded[di : di + nx, dj : dj + ny] for di in range(3) for dj in range(3)], axis=-1
-    )
+    # Only the ground cells get a median (the rest stay NaN): their neighbourhoods alone
+    # are gathered and sorted, not the whole grid's.
+    i, j = np.nonzero(np.isfinite(ground))
+    stack = np.stack([padded[i + di, j + dj] for di in range(3) for dj in range(3)], axis=-1)
     # NaN sorts last: the median of the n finite values is at (n - 1) // 2 (the lower one).
     ordered = np.sort(stack, axis=-1)
-    count = np.isfinite(stack).sum(axis=-1)
-    middle = np.maximum(count - 1, 0) // 2
-    median = np.take_along_axis(ordered, middle[..., None], axis=-1)[..., 0]
-    return np.where(np.isfinite(ground), median, np.nan)
+    middle = (np.isfinite(stack).sum(axis=-1) - 1) // 2  # n >= 1: the cell itself
+    out = np.full(ground.shape, np.nan)
+    out[i, j] = np.take_along_axis(ordered, middle[:, None], axis=-1)[:, 0]
+    return out
 
 
 def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float) -> np.ndarray:

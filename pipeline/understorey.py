@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from treetraits.pipeline.clustering import attach, euclidean_clusters
+from treetraits.pipeline.clustering import attach, euclidean_clusters, stable_order
 
 
 def join_understorey(
@@ -44,8 +44,9 @@ def join_understorey(
     if len(loose) == 0:
         return out
     piece = euclidean_clusters(voxels[index[loose]], tolerance)
-    for p in np.unique(piece):
-        members = loose[piece == p]
+    # Pieces in label order, each one's voxels in index order: one stable sort.
+    order = stable_order(piece)
+    for members in np.split(loose[order], np.flatnonzero(np.diff(piece[order])) + 1):
         if starts[index[members]].any():
             out[members] = next_label
             next_label += 1

@@ -39,28 +39,39 @@ class BeamsAbove:
         y = points["y"].astype(float)
         z = points["z"].astype(float)
         bearing = np.arctan2(y, x)
-        order = np.argsort(ring, kind="stable")
+        # Sorted as the uint8 rings they are: NumPy's stable sort of bytes is a radix
+        # sort, several times faster than of int64, and the order is the same.
+        order = np.argsort(points["ring"], kind="stable")
         self.top_ring = max(TOP_RING, int(ring.max()) if len(ring) else 0)
+        span = np.sqrt(x * x + y * y + z * z)
         self._bearing = bearing[order]
-        self._range = np.sqrt(x * x + y * y + z * z)[order]
+        self._range = span[order]
         self._starts = np.searchsorted(ring[order], np.arange(self.top_ring + 2))
+        # Per return in the scan's order, for the clusters' own returns: what top_seen
+        # worked out again for each cluster, the same values gathered.
+        self._points = points
+        self._by_point = (x, y, z, bearing, span, points["ring"])
 
     def top_seen(
         self, members: np.ndarray, points: np.ndarray, window_rad: float, reach_m: float
     ) -> bool:
         """Whether the beam above the cluster `points[members]` (indices into this scan's
         array) passed over all of it: see the module's docstring."""
-        mine = points[members]
-        x, y, z = (mine[k].astype(float) for k in ("x", "y", "z"))
+        if points is self._points:
+            x, y, z, bearing, span, rings = (values[members] for values in self._by_point)
+        else:
+            mine = points[members]
+            x, y, z = (mine[k].astype(float) for k in ("x", "y", "z"))
+            bearing, span, rings = np.arctan2(y, x), np.sqrt(x * x + y * y + z * z), mine["ring"]
         top = int(np.argmax(z))
-        ring = int(mine["ring"].max())  # the cluster's highest beam: the next one up
+        ring = int(rings.max())  # the cluster's highest beam: the next one up
         if ring >= self.top_ring:
             return False
         # Bearings relative to the top's, so a span across the +-pi seam stays whole.
-        centre = float(np.arctan2(y[top], x[top]))
-        offsets = _wrap(np.arctan2(y, x) - centre)
+        centre = float(np.arctan2(y[top], x[top]))  # as before: the scalar arctangent
+        offsets = _wrap(bearing - centre)
         low, high = offsets.min() - window_rad, offsets.max() + window_rad
-        farthest = float(np.sqrt(x * x + y * y + z * z).max())
+        farthest = float(span.max())
         start, end = self._starts[ring + 1], self._starts[ring + 2]
         above = _wrap(self._bearing[start:end] - centre)
         inside = (above >= low) & (above <= high)
