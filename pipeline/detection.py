@@ -328,7 +328,9 @@ def detect(
     )
     trunk_blobs = [blob for blob, stem in zip(blobs, is_stem, strict=True) if not stem]
     labels, counts["split"] = split_at_trunks(labels, voxels, crown, trunk_blobs, config.cluster)
-    trunks = cluster_trunks(labels, voxels, crown, trunk_blobs, config.cluster, config.classify)
+    trunks = cluster_trunks(
+        labels, voxels, crown, trunk_blobs, config.cluster, config.classify, lidar_xy
+    )
     stemmed = stem_of >= 0
     labels[stemmed] = labels.max(initial=-1) + 1 + stem_of[stemmed]
     clusters_kept = _size_filter(labels, config.cluster)
@@ -414,6 +416,7 @@ def cluster_trunks(
     trunk_blobs: list[BandBlob],
     config: ClusterConfig,
     classify: ClassifyConfig,
+    lidar_xy: np.ndarray,
 ) -> dict[int, np.ndarray]:
     """The trunk axis (`BandBlob.axis`, base) of each cluster label under whose crown
     exactly one trunk stands in this scan: where a tree is, for the field map, is its
@@ -422,19 +425,21 @@ def cluster_trunks(
     `classify.min_roughness_m`; a weed clump as narrow is foliage, rough; too few
     returns to tell: not counted), a tree spacing from any other (`_trunks`). Two or
     more: a neighbour's trunk beside it, and no telling which is the tree's."""
-    smooth = [
-        k
-        for k, blob in enumerate(trunk_blobs)
-        if math.isfinite(blob.roughness) and blob.roughness < classify.min_roughness_m
-    ]
-    under = _blobs_under(labels, voxels, crown, [trunk_blobs[k] for k in smooth])
+    under = _blobs_under(labels, voxels, crown, trunk_blobs)
     found = {}
     for label in np.unique(under[under >= 0]):
-        mine = [trunk_blobs[smooth[k]] for k in np.flatnonzero(under == label)]
-        kept = _trunks(mine, config)
+        mine = [trunk_blobs[k] for k in np.flatnonzero(under == label)]
+        kept = _trunks([blob for blob in mine if _is_bark(blob, lidar_xy, classify)], config)
         if len(kept) == 1:
             found[int(label)] = kept[0].axis
     return found
+
+
+def _is_bark(blob: BandBlob, lidar_xy: np.ndarray, classify: ClassifyConfig) -> bool:
+    """Smooth along the rings (`classify.roughness`), as bark is; NaN (too few returns to
+    tell) is not."""
+    rough = roughness(blob.xyz, blob.ring, lidar_xy)
+    return math.isfinite(rough) and rough < classify.min_roughness_m
 
 
 def _blobs_under(
@@ -497,7 +502,8 @@ class BandBlob(NamedTuple):
     # line of sight, so their mean lies pi/4 r in front of the axis; r is half the
     # blob's width across the line of sight. z: the returns' mean height.
     axis: np.ndarray
-    roughness: float  # m, along the rings (`classify.roughness`): wood is smooth
+    xyz: np.ndarray  # its returns (base), for `_is_bark`
+    ring: np.ndarray
 
 
 def _band_blobs(
@@ -524,10 +530,10 @@ def _band_blobs(
         part = xy[mine]
         if horizontal_extent(part) > config.max_trunk_width_m:
             continue  # a skirt hanging into the band, a weed: not a trunk
+        returns = band_xyz[mine]
         centre = part.mean(axis=0)
-        z = float(band_xyz[mine, 2].mean())
-        rough = roughness(band_xyz[mine], band_ring[mine], lidar_xy)
-        found.append(BandBlob(len(part), centre, _axis(part, centre, z, lidar_xy), rough))
+        axis = _axis(part, centre, float(returns[:, 2].mean()), lidar_xy)
+        found.append(BandBlob(len(part), centre, axis, returns, band_ring[mine]))
     return found
 
 

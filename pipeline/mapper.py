@@ -98,26 +98,16 @@ class _Tree:
     ndvi_count: int = 0
     top_seen: bool = False
     # x-y of the trunk axis under its crown, one per scan that saw exactly one (the traits
-    # frame, as the outline): where the tree stands (`trunk_position`).
-    trunks: list[tuple[float, float]] = field(default_factory=list)
-    _trunk_array: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+    # frame, as the outline), N x 2: where the tree stands (`trunk_position`).
+    trunks: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
 
-    def add_trunk(self, xy: tuple[float, float]) -> None:
-        self.trunks.append(xy)
-        if len(self.trunks) >= _MAX_TRUNK_SIGHTINGS:
+    def add_trunks(self, xy: np.ndarray) -> None:
+        """Sightings (N x 2) added; at most `_MAX_TRUNK_SIGHTINGS` are kept."""
+        self.trunks = np.concatenate([self.trunks, np.reshape(xy, (-1, 2))])
+        while len(self.trunks) >= _MAX_TRUNK_SIGHTINGS:
             # Every other one kept: the places' shares of the sightings stay as they were,
             # and `trunk_position`'s cost stays bounded for a tree seen for minutes.
             self.trunks = self.trunks[::2]
-            self._trunk_array = np.empty((0, 2))
-
-    def trunk_array(self) -> np.ndarray:
-        """`trunks` as an N x 2 array, converting only the sightings added since the last
-        call (sightings are only ever appended)."""
-        done = len(self._trunk_array)
-        if done < len(self.trunks):
-            fresh = np.asarray(self.trunks[done:], dtype=float).reshape(-1, 2)
-            self._trunk_array = np.concatenate([self._trunk_array, fresh])
-        return self._trunk_array
 
 
 # Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).
@@ -312,7 +302,7 @@ class TreeMapper:
         position = track.state[:3]
         centre = tree.traits.centre()
         trunk = trunk_position(
-            tree.trunk_array(), self.config.traits, track.observations, centre, tree.traits.width
+            tree.trunks, self.config.traits, track.observations, centre, tree.traits.width
         )
         if trunk is not None:
             centre = trunk
@@ -456,7 +446,7 @@ class TreeMapper:
             if cluster.trunk is not None:
                 trunk = traits_from_base[:2, :3] @ cluster.trunk + traits_from_base[:2, 3]
                 if centres.nearest_is(trunk[None], tree_id)[0]:  # not a neighbour's
-                    tree.add_trunk((float(trunk[0]), float(trunk[1])))
+                    tree.add_trunks(trunk)
         tree.traits.observe(points, ring, cluster.ground_z, world_points, ground_world, pose_sigma)
         # The cluster's top in view counts for this tree if that top is its own.
         if cluster.top_seen and own[int(np.argmax(cluster.points[:, 2]))]:
@@ -534,8 +524,7 @@ class TreeMapper:
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
         tree.top_seen = tree.top_seen or gone.top_seen
-        for sighting in gone.trunks:
-            tree.add_trunk(sighting)
+        tree.add_trunks(gone.trunks)
 
 
 def trunk_position(
