@@ -4,8 +4,8 @@ A simulated survey is streamed live at its real rate by `sim.player.RecordingPla
 LiDAR over UDP to 127.0.0.1, GNSS and the Jackal MCU over pseudo-terminals, the camera
 as an MJPG video file. A bound AF_UNIX datagram socket stands in for systemd's
 NOTIFY_SOCKET and receives READY, STATUS, WATCHDOG and STOPPING. Checked: the outputs,
-SIGTERM within 5 s, a GNSS pty closed mid-run, kill -9 and a restart, a foreign sender,
-a full disk (RLIMIT_FSIZE) and a config error.
+SIGTERM within 5 s, a GNSS pty closed mid-run, a wheel port that appears mid-survey, kill
+-9 and a restart, a foreign sender, a full disk (RLIMIT_FSIZE) and a config error.
 """
 
 from __future__ import annotations
@@ -357,14 +357,15 @@ def _within(a: float | None, b: float | None, rel: float) -> bool:
     return abs(a - b) <= rel * max(abs(a), abs(b))
 
 
-def _wait_caught_up(service: Service, timeout: float) -> None:
+def _wait_caught_up(service: Service, timeout: float, count: str = "recorded") -> None:
     """The loop has handled what its queues held: two new STATUS lines in a row with
-    nothing more recorded. A loaded machine's loop falls seconds behind the packets it
-    took; a SIGTERM then leaves the end of the survey unprocessed (the drain limit)."""
+    nothing more `count`ed (recorded messages, or committed scans). A loaded machine's
+    loop falls seconds behind the packets it took; a SIGTERM then leaves the end of the
+    survey unprocessed (the drain limit)."""
     seen = len(service.statuses())
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        counts = [counter(s, "recorded") for s in service.statuses()[seen:]]
+        counts = [counter(s, count) for s in service.statuses()[seen:]]
         if len(counts) >= 2 and counts[-1] == counts[-2]:
             return
         time.sleep(0.1)
@@ -445,6 +446,46 @@ def test_live_and_replay_write_the_same_trees(survey, tmp_path):
             assert _within(width, live_width, 0.01), (field_id, width, live_width)
             assert _within(height, live_height, 0.01), (field_id, height, live_height)
             assert _within(ndvi, live_ndvi, 0.01), (field_id, ndvi, live_ndvi)
+
+
+def test_a_wheel_link_that_comes_late_maps_every_scan(survey, tmp_path):
+    """The survey starts before the Jackal MCU's port exists: the service starts with the
+    wheels reopening, the port appears 3 s into the survey (its first MCU frames unheard,
+    as in the slow bench run of docs/performance.md), and every scan is still mapped and
+    committed, in UTM, with the field-map trees found."""
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    late_port = tmp_path / "jackal-late"
+    config = write_config(tmp_path, survey, player, wheels=f'port = "{late_port}"')
+    service = Service(tmp_path, config)
+    try:
+        service.wait_ready()
+        player.start()
+        appear = threading.Timer(3.0, lambda: late_port.symlink_to(player.wheels_device))
+        appear.start()
+        assert player.wait(timeout=survey.duration_s + 30)
+        appear.join()
+        played = player.counters["lidar_sent"]
+        service.wait_for(
+            lambda s: counter(s, "lidar_packets") + max(counter(s, "kernel_drops"), 0) >= played,
+            20,
+            "with every played packet taken",
+        )
+        _wait_caught_up(service, 60, "scans")
+        code, _ = service.terminate()
+    finally:
+        player.close()
+        service.close()
+    assert code == 0, service.stderr()
+    assert player.counters["wheels_unheard"] > 0  # the MCU's first frames went unheard
+    statuses = service.statuses()
+    assert any("wheels=disconnected" in s and scans_in(s) > 0 for s in statuses), statuses[:5]
+    assert "wheels=ok" in statuses[-1]
+    run = (tmp_path / "out" / "runs" / "latest").resolve()
+    db = open_db(run / "traits.sqlite")
+    scans = db.execute("SELECT COUNT(DISTINCT scan_t) FROM observations").fetchone()[0]
+    assert scans >= 0.8 * survey.duration_s * 10  # 10 Hz, the first and last ones aside
+    assert dict(db.execute("SELECT key, value FROM run"))["world_frame"] == "utm"
+    assert len(_trees_by_field_id(run / "traits.sqlite")) >= 4
 
 
 def test_gnss_unplugged_then_kill_9_and_restart(survey, tmp_path):
