@@ -7,7 +7,9 @@ A simulated survey long enough for the window (cached under out/bench/) is playe
 the recording's frames as an MJPG video (`camera.device = <file>`, played from the
 service's start, so it is not time-aligned with the LiDAR: the load is right, the
 pictures are not). The service runs as a subprocess with a NOTIFY_SOCKET we bind; the
-player starts on READY=1 and plays for `--seconds` (default 60). Measured:
+player starts on READY=1 and plays for `--seconds` (default 60). With `--busy N` the
+service is pinned to one CPU beside N busy loops: a computer too slow for every scan,
+where the service sheds scans (`service.max_backlog_s`, docs/service.md). Measured:
 
 - lost packets: the player's count sent (data + telemetry) minus what the service took
   from its sockets (STATUS `lidar_packets`: what the kernel dropped for a full socket
@@ -34,6 +36,7 @@ Last line, exactly: `service_lost=N cpu_pct=C rss_peak_mb=M rss_growth=G
 latency_ms_p50=A latency_ms_p99=B cpu_vs_replay=R` (no line breaks).
 
     .venv/bin/python bench/service.py [--seconds 60] [--record] [--recording REC.mcap]
+        [--busy N]
 """
 
 from __future__ import annotations
@@ -265,6 +268,8 @@ class LiveRun:
     recorded_bytes: int = 0
     bench_cpu_s: float = 0.0  # this process (the player, the pollers) over the window
     thread_cpu_s: dict[str, float] = field(default_factory=dict)  # per service thread
+    scans: int = 0  # committed, by the last STATUS
+    scans_shed: int = 0  # not mapped: the loop was behind its sensors (service.max_backlog_s)
 
 
 def write_config(path: Path, values: dict[str, dict]) -> None:
@@ -277,7 +282,19 @@ def write_config(path: Path, values: dict[str, dict]) -> None:
     path.write_text("\n".join(lines))
 
 
-def live_run(recording: Path, seconds: float, record: bool, work: Path) -> LiveRun:
+def busy_loops(count: int, cpu: int) -> list[subprocess.Popen]:
+    """`count` processes spinning on `cpu`: the service pinned there gets about 1/(count+1)
+    of it, a computer slower than this one."""
+    return [
+        subprocess.Popen(
+            [sys.executable, "-c", "while True: pass"],
+            preexec_fn=lambda: os.sched_setaffinity(0, {cpu}),
+        )
+        for _ in range(count)
+    ]
+
+
+def live_run(recording: Path, seconds: float, record: bool, work: Path, busy: int = 0) -> LiveRun:
     work.mkdir(parents=True)
     video = write_camera_video(recording, work / "camera.avi")
     calibration = rec.read_recording(recording).metadata
@@ -323,8 +340,13 @@ def live_run(recording: Path, seconds: float, record: bool, work: Path) -> LiveR
         command.append("--record")
     result = LiveRun(seconds)
     watcher = CommitWatcher(out_dir)
+    cpu = min(os.sched_getaffinity(0))
+    pin = (lambda: os.sched_setaffinity(0, {cpu})) if busy else None
     with open(log_path, "wb") as log:
-        service = subprocess.Popen(command, cwd=ROOT, env=env, stdout=log, stderr=log)
+        service = subprocess.Popen(
+            command, cwd=ROOT, env=env, stdout=log, stderr=log, preexec_fn=pin
+        )
+    spinners = busy_loops(busy, cpu)
     try:
         deadline = time.monotonic() + READY_TIMEOUT_S
         while not notify.ready:
@@ -371,6 +393,9 @@ def live_run(recording: Path, seconds: float, record: bool, work: Path) -> LiveR
             result.exit_code = service.wait()
         notify.drain(0.2)
     finally:
+        for spinner in spinners:
+            spinner.kill()
+            spinner.wait()
         watcher.stop.set()
         player.close()
         if service.poll() is None:
@@ -386,6 +411,7 @@ def live_run(recording: Path, seconds: float, record: bool, work: Path) -> LiveR
     last = status_counters(result.statuses[-1]) if result.statuses else {}
     result.received = last.get(RECEIVED_KEY)
     result.service_drops = next((last[k] for k in DROPPED_KEYS if k in last), None)
+    result.scans, result.scans_shed = int(last.get("scans", 0)), int(last.get("scans_shed", 0))
     if KERNEL_DROPS_KEY in last:  # the service's own view of the kernel's drops
         result.kernel_drops = max(result.kernel_drops or 0, int(last[KERNEL_DROPS_KEY]))
     if record:
@@ -467,6 +493,7 @@ def report(run: LiveRun, label: str, replay_cpu_per_s: float) -> dict[str, float
             f"{statistics.median(first):.0f} MB, last third {statistics.median(last):.0f} MB "
             f"(x{growth:.2f}), {len(run.rss)} samples"
         )
+    print(f"  scans: committed {run.scans}, shed {run.scans_shed} (the loop behind its sensors)")
     lat = run.latencies_ms
     if lat:
         print(
@@ -504,6 +531,14 @@ def main() -> None:
     parser.add_argument("--record", action="store_true", help="also a run with --record")
     parser.add_argument("--recording", type=Path, help="play this instead of a simulated survey")
     parser.add_argument("--keep", action="store_true", help="keep the work directory")
+    parser.add_argument(
+        "--busy",
+        type=int,
+        default=0,
+        help="pin the service to one CPU with this many busy loops: a slower computer (2: "
+        "about a third of a core, where a Xavier core 3x slower than this one would need "
+        "~135 %% of one for the same load)",
+    )
     args = parser.parse_args()
     recording = args.recording or survey_for(args.seconds)
     duration = span_s(recording)
@@ -513,9 +548,10 @@ def main() -> None:
         )
     work = Path(tempfile.mkdtemp(prefix="treetraits-bench-service-"))
     try:
-        runs = [("live", live_run(recording, args.seconds, False, work / "live"))]
+        runs = [("live", live_run(recording, args.seconds, False, work / "live", args.busy))]
         if args.record:
-            runs.append(("live --record", live_run(recording, args.seconds, True, work / "record")))
+            record_run = live_run(recording, args.seconds, True, work / "record", args.busy)
+            runs.append(("live --record", record_run))
         replay_cpu, replay_wall, scans = replay_cost(recording, work)
         per_s = replay_cpu / duration
         print(

@@ -320,6 +320,15 @@ class ServiceSection:
     log_level: str = field(
         default="info", metadata=_key("debug | info | warning | error", check=_one_of(LOG_LEVELS))
     )
+    max_backlog_s: float = field(
+        default=0.5,
+        metadata=_key(
+            "a scan ready while the loop is this far behind its sensors is not mapped "
+            "(counted, scans_shed): a host too slow for every scan maps some, and loses no "
+            "packet or frame from a full queue; 0: never",
+            check=_between(0.0, MAX_PERIOD_S),
+        ),
+    )
 
 
 SECTION_HELP = {

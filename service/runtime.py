@@ -24,6 +24,7 @@ docs/service.md.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import json
 import logging
 import os
@@ -64,6 +65,14 @@ JOIN_S = 1.0  # then each receive thread gets this long to end
 IDLE_WAIT_S = 0.1  # with every queue empty, the loop sleeps at most this long
 BATCH = 256  # items between two looks at the clock (exports, status, watchdog)
 GATHER_S = 0.01  # once woken from idle, the loop waits this long for more items
+PIPELINE_MODULES = (
+    "cv2",
+    "filterpy.kalman",
+    "scipy.ndimage",
+    "scipy.optimize",
+    "scipy.spatial",
+    "treetraits.pipeline.fusion",
+)
 
 
 @dataclass
@@ -76,7 +85,7 @@ class Counters:
     processing_errors: int = 0  # messages the pipeline raised on (logged, then skipped)
     export_failures: int = 0
     recorded: int = 0
-    problems: dict[str, str] = field(default_factory=dict)  # "store"/"export"/"recorder" -> text
+    problems: dict[str, str] = field(default_factory=dict)  # "store", "export", ... -> text
 
 
 def utc_stamp(moment: datetime | None = None) -> str:
@@ -136,6 +145,7 @@ class Service:
         self._signals = 0
         self._stopped_by: str | None = None  # "SIGTERM", "SIGINT": the signal that stopped it
         self._export_failed = False  # the last export did not go through
+        self._shed_reported = 0  # scans_shed as of the last STATUS
         self._unprocessed = 0  # queued items the shutdown's drain limit left
         # A video file played as the camera starts with the first LiDAR packet: a survey
         # played into the service then gets frames where its own were (PacedVideo).
@@ -231,6 +241,14 @@ class Service:
         from treetraits.service.replay import make_processor
 
         self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
+        # What the pipeline imports where it is used, imported before READY: the first
+        # scans would otherwise wait ~1-2 s for them, a backlog past max_backlog_s.
+        for module in PIPELINE_MODULES:
+            importlib.import_module(module)
+        if self.cfg.service.max_backlog_s > 0:
+            limit_ns = round(self.cfg.service.max_backlog_s * 1e9)
+            # Items carry their receive time on the host's clock (`Message.log_time`).
+            self.processor.behind = lambda newest: time.time_ns() - newest > limit_ns
         try:
             self.run_dir = new_run_dir(Path(self.cfg.output.dir), self._stamp)
         except OSError as exc:
@@ -411,6 +429,8 @@ class Service:
                 numbers[f"dropped_{worker.queue.name}"] = worker.queue.dropped
         if self.counters.processing_errors:
             numbers["errors"] = self.counters.processing_errors
+        if self.processor is not None and self.processor.stats.scans_shed:
+            numbers["scans_shed"] = self.processor.stats.scans_shed
         return numbers
 
     def _status(self, now: float) -> str:
@@ -418,6 +438,16 @@ class Service:
         return status_line(health, self._numbers())
 
     def _report(self, now: float) -> None:
+        if self.processor is not None:
+            shed = self.processor.stats.scans_shed - self._shed_reported
+            self._shed_reported += shed
+            if shed:
+                scans = "scan" if shed == 1 else "scans"
+                self.counters.problems["processing"] = (
+                    f"behind its sensors: {shed} {scans} not mapped since the last status"
+                )
+            else:
+                self.counters.problems.pop("processing", None)
         line = self._status(now)
         self.notifier.status(line)
         if line.startswith("DEGRADED"):
@@ -502,6 +532,8 @@ class Service:
             "utm_zone": processor.localizer.grid.name if processor.localizer.grid else None,
             "scans_without_pose": processor.stats.scans_without_pose,
             "scans_without_heading": processor.stats.scans_without_heading,
+            # Ready while the loop was more than service.max_backlog_s behind: not mapped.
+            "scans_shed": processor.stats.scans_shed,
             "fixes": processor.stats.fixes,
             "frames": processor.stats.frames,
             "stopped": utc_stamp(),

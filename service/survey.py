@@ -25,12 +25,19 @@ Whatever is missing, a scan waits no longer than POSE_WAIT_NS past its middle (b
 newest message seen): then it goes with what there is (no pose: left out or mapped
 without, see `_mappable`). Every rule reads message times only, so a replay is
 deterministic, and the scan gets the pose and frame it would get if it waited longer.
+
+Live, a host too slow to map every scan sheds whole scans (`behind`, set by the
+service): a scan that is ready while the newest message taken is older than the service's
+limit goes unmapped and is counted (`scans_shed`). Everything else (packets, poses,
+frames) is still taken in, so the loop catches up and nothing is dropped at random from a
+full queue. A replay never sheds.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -90,6 +97,7 @@ class SurveyStats:
     scans_without_heading: int = 0  # in utm before the heading is known: not mapped
     reanchored_at: int | None = None  # when the map moved from odom to utm (late fix)
     scans_skipped: int = 0  # could not be placed in the run's frame: not mapped (see _ready)
+    scans_shed: int = 0  # ready while the live loop was behind its sensors: not mapped
     frames: int = 0
     fixes: int = 0
     wheel_samples: int = 0
@@ -143,6 +151,9 @@ class SurveyProcessor:
         # (time, 3x3 utm_from_odom) when a run that began in odom moved to utm.
         self.anchor: tuple[int, np.ndarray] | None = None
         self._mapped_with_pose: bool | None = None  # set by the first scan mapped
+        # Live only: given the newest log_time taken, whether the loop is too far behind
+        # its sensors to map a scan now (the service's `max_backlog_s`).
+        self.behind: Callable[[int], bool] | None = None
 
     def feed(self, topic: str, data: bytes, log_time: int, publish_time: int) -> list[ScanOutcome]:
         """One received message; returns the scans it let through the pipeline."""
@@ -413,6 +424,9 @@ class SurveyProcessor:
         self._reanchor()
         while self._pending and (end_of_input or self._settled(self._pending[0])):
             scan = self._pending.popleft()
+            if self.behind is not None and self.behind(self._latest):
+                self.stats.scans_shed += 1
+                continue
             middle = scan_mid_time(scan)
             pose = self.pose_at(middle)
             if pose is None:

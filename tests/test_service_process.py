@@ -4,8 +4,9 @@ A simulated survey is streamed live at its real rate by `sim.player.RecordingPla
 LiDAR over UDP to 127.0.0.1, GNSS and the Jackal MCU over pseudo-terminals, the camera
 as an MJPG video file. A bound AF_UNIX datagram socket stands in for systemd's
 NOTIFY_SOCKET and receives READY, STATUS, WATCHDOG and STOPPING. Checked: the outputs,
-SIGTERM within 5 s, a GNSS pty closed mid-run, a wheel port that appears mid-survey, kill
--9 and a restart, a foreign sender, a full disk (RLIMIT_FSIZE) and a config error.
+SIGTERM within 5 s, a GNSS pty closed mid-run, a wheel port that appears mid-survey, a
+loop behind its sensors, kill -9 and a restart, a foreign sender, a full disk
+(RLIMIT_FSIZE) and a config error.
 """
 
 from __future__ import annotations
@@ -388,7 +389,10 @@ def test_live_and_replay_write_the_same_trees(survey, tmp_path):
     10 ms, 5 mm, off the twin's)."""
     player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
     latency = f"gnss_latency_s = {LATENCY_NS['gnss'] / 1e9}"
-    config = write_config(tmp_path, survey, player, localization=latency)
+    # Every scan mapped, however far a loaded machine's loop falls behind: a shed scan
+    # is a difference from the replay by design (docs/service.md).
+    never_shed = "status_every_s = 0.5\nmax_backlog_s = 0"
+    config = write_config(tmp_path, survey, player, localization=latency, service=never_shed)
     service = Service(tmp_path, config, "--record")
     try:
         service.wait_ready()
@@ -486,6 +490,44 @@ def test_a_wheel_link_that_comes_late_maps_every_scan(survey, tmp_path):
     assert scans >= 0.8 * survey.duration_s * 10  # 10 Hz, the first and last ones aside
     assert dict(db.execute("SELECT key, value FROM run"))["world_frame"] == "utm"
     assert len(_trees_by_field_id(run / "traits.sqlite")) >= 4
+
+
+def test_a_loop_behind_its_sensors_sheds_scans_not_packets(survey, tmp_path):
+    """`service.max_backlog_s` far below what a loop can hold to (1 ms: it gathers 10 ms
+    of items per wake-up) stands for a computer too slow for every scan: the scans ready
+    while it is behind are not mapped, counted in STATUS (`scans_shed`, DEGRADED) and in
+    the store's run facts, and no packet is dropped."""
+    player = RecordingPlayer(survey.recording, data_port=free_udp_port(), telemetry_port=None)
+    config = write_config(
+        tmp_path, survey, player, service="status_every_s = 0.5\nmax_backlog_s = 0.001"
+    )
+    service = Service(tmp_path, config)
+    try:
+        service.wait_ready()
+        player.start()
+        assert player.wait(timeout=survey.duration_s + 30)
+        played = player.counters["lidar_sent"]
+        service.wait_for(
+            lambda s: counter(s, "lidar_packets") + max(counter(s, "kernel_drops"), 0) >= played,
+            20,
+            "with every played packet taken",
+        )
+        _wait_caught_up(service, 60, "scans")
+        code, _ = service.terminate()
+    finally:
+        player.close()
+        service.close()
+    assert code == 0, service.stderr()
+    statuses = service.statuses()
+    assert any(s.startswith("DEGRADED behind its sensors: ") for s in statuses), statuses[-3:]
+    final = statuses[-1]
+    assert counter(final, "scans_shed") > 0.5 * survey.duration_s * 10
+    assert counter(final, "dropped_lidar") == 0
+    run = (tmp_path / "out" / "runs" / "latest").resolve()
+    facts = dict(open_db(run / "traits.sqlite").execute("SELECT key, value FROM run"))
+    # The shutdown's last scans come after the STOPPING status; its summary has them all.
+    assert int(facts["scans_shed"]) >= counter(final, "scans_shed")
+    assert f'"scans_shed": {facts["scans_shed"]}' in service.stderr()
 
 
 def test_gnss_unplugged_then_kill_9_and_restart(survey, tmp_path):

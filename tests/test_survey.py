@@ -168,6 +168,30 @@ def test_wheels_and_gnss_read_in_backlogs_give_the_poses_read_on_time(survey):
     assert backlog == on_time
 
 
+def test_a_loop_behind_its_sensors_sheds_whole_scans_and_keeps_the_poses(survey):
+    """Live, `behind` (the service's clock against the newest message) says the loop is
+    too far behind to map: the scans ready then are counted and not mapped, and the
+    others get the pose and frame of a run that maps every scan (the localizer still
+    takes every message)."""
+    _, full, kept = run(survey)
+    processor = make_processor(ServiceConfig(), messages(survey)[1])
+    # Behind during every other second of the survey, by the newest message's time.
+    t0 = kept[0][2]
+    processor.behind = lambda newest: (newest - t0) // 1_000_000_000 % 2 == 1
+    mapped = []
+    for message in kept:
+        mapped.extend(processor.feed(*message))
+    assert len(full) > 120
+    assert processor.stats.scans_shed > 40 and len(mapped) > 40
+    assert processor.stats.scans_shed + len(mapped) == len(full)
+    assert processor.stats.scans == len(mapped)  # only they reached the mapper
+    everything = {o.scan.t_host: (o.pose, o.frame.t_capture) for o, _ in full}
+    for outcome in mapped:
+        pose, frame_time = everything[outcome.scan.t_host]
+        assert (outcome.pose.x, outcome.pose.y, outcome.pose.yaw) == (pose.x, pose.y, pose.yaw)
+        assert outcome.frame.t_capture == frame_time
+
+
 def test_a_scan_before_the_first_fix_is_as_uncertain_as_the_datum(survey):
     """Carried into utm at the datum, a pose seen before the first fix has the datum's
     covariance, not the zero of odometry: a scan a few ms before the first fix was
