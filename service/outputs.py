@@ -27,6 +27,7 @@ from treetraits.pipeline.georef import (
     RenderCache,
     georeference,
     missing_trees,
+    utm_positions,
     write_trees_csv,
     write_trees_geojson,
 )
@@ -78,6 +79,7 @@ class RunWriter:
         except sqlite3.Error as exc:  # a full disk, a directory in its place
             raise OutputError(f"{self.store_path}: store not created: {_sqlite_text(exc)}") from exc
         self._field_index: FieldMapIndex | None = None
+        self._approach: _Approach | None = None  # the field-map trees' nearest approach
         # Trees the mapper finalised (`tracking.retire_m`), georeferenced once when they
         # were: reported ones and rejected ones, by tree id. Exports take them as they
         # are and georeference only the trees still in memory.
@@ -219,20 +221,34 @@ class RunWriter:
 
     def missing(self, found: list[Tree]) -> list[Tree]:
         """Field-map trees passed within `missing_range_m` that no found tree matched."""
-        localizer = self.processor.localizer
         index = self._index()
         if index is None or not len(index) or not self._path:
             return []
-        path = georeference(
-            self._path, localizer.grid, (), utm_from_odom=self.processor.utm_from_odom
-        )
-        xy = np.array([(p.easting, p.northing) for p in path if p.easting is not None])
-        if not len(xy):
-            return []
-        from scipy.spatial import cKDTree
+        return missing_trees(index, found, self._passed(index), self.missing_range_m)
 
-        passed, _ = cKDTree(xy).query(index.xy)
-        return missing_trees(index, found, passed, self.missing_range_m)
+    def _passed(self, index: FieldMapIndex) -> np.ndarray:
+        """Each field-map tree's nearest approach by the path so far (m; inf where the
+        path never came within `missing_range_m`). The path points whose UTM place can no
+        longer change (driven in `utm`, or in `odom` before the re-anchoring) are taken in
+        once; the rest, in `odom` with no datum yet, are placed again each time."""
+        anchor = self.processor.anchor
+        state = self._approach
+        if state is None or state.index is not index or state.anchor is not anchor:
+            state = self._approach = _Approach(index, anchor, np.full(len(index), np.inf))
+        settled = state.taken
+        while settled < len(self._path) and _place_is_final(self._path[settled], anchor):
+            settled += 1
+        place = self.processor.utm_from_odom
+        grid, reach = index.grid, self.missing_range_m
+        index.approach(
+            utm_positions(self._path[state.taken : settled], grid, place), reach, state.nearest
+        )
+        state.taken = settled
+        if settled == len(self._path):
+            return state.nearest
+        passed = state.nearest.copy()
+        index.approach(utm_positions(self._path[settled:], grid, place), reach, passed)
+        return passed
 
     def path_utm(self) -> list[list[float]]:
         """The robot's path so far in UTM (easting, northing; cm), one point per metre
@@ -240,8 +256,8 @@ class RunWriter:
         grid = self.processor.localizer.grid
         if grid is None or not self._path:
             return []
-        path = georeference(self._path, grid, (), utm_from_odom=self.processor.utm_from_odom)
-        return [[round(p.easting, 2), round(p.northing, 2)] for p in path if p.easting is not None]
+        xy = utm_positions(self._path, grid, self.processor.utm_from_odom)
+        return [[round(float(e), 2), round(float(n), 2)] for e, n in xy if math.isfinite(e)]
 
     def _index(self) -> FieldMapIndex | None:
         """The field map in the run's UTM grid, built once per grid."""
@@ -297,6 +313,24 @@ class Exported:
     found: list[Tree]
     missing: list[Tree]  # field-map trees passed and not found
     rejected: list[Tree]  # objects that are not trees, each with its reason
+
+
+@dataclass
+class _Approach:
+    """The field map's nearest approach by the path, taken in point by point (an export
+    then looks at the points added since the last one, not at the whole path against the
+    whole map). Valid for one field-map index and one re-anchoring of the map."""
+
+    index: FieldMapIndex
+    anchor: object  # SurveyProcessor.anchor when it was begun
+    nearest: np.ndarray  # per field-map tree (m); inf: never within reach
+    taken: int = 0  # path points taken in
+
+
+def _place_is_final(point: _PathPoint, anchor) -> bool:
+    """Its UTM place can no longer change: driven in `utm`, or in `odom` before the map
+    was re-anchored (placed by that re-anchoring's transform for good)."""
+    return point.frame == "utm" or (anchor is not None and point.last_seen <= anchor[0])
 
 
 @dataclass(frozen=True)

@@ -271,6 +271,31 @@ def test_the_field_map_index_pairs_as_the_exhaustive_matching_does():
     assert matched > 200
 
 
+def test_a_path_taken_in_piece_by_piece_passes_the_trees_the_whole_path_passes():
+    """The field map's nearest approach, brought up to date one piece of path at a time
+    (what each export adds), within reach is the nearest approach of the whole path
+    (a k-d tree over all of it, as the exports worked it out before); unplaced points
+    (NaN) count for nothing."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    mapped = rng.uniform(0, 60, (400, 2))
+    index = FieldMapIndex(
+        [field_tree(f"F{j}", E0 + x, N0 + y) for j, (x, y) in enumerate(mapped)], GRID
+    )
+    path = index.xy[0] + np.cumsum(rng.normal(0.0, 1.0, (300, 2)), axis=0)
+    path[rng.random(len(path)) < 0.05] = np.nan
+    nearest = np.full(len(index), np.inf)
+    for piece in np.array_split(path, [1, 40, 41, 200]):
+        index.approach(piece, 6.0, nearest)
+    placed = path[np.isfinite(path).all(axis=1)]
+    whole, _ = cKDTree(placed).query(index.xy)
+    within = whole <= 6.0
+    assert 50 < within.sum() < len(index)  # some passed, some not
+    np.testing.assert_allclose(nearest[within], whole[within], rtol=0, atol=1e-9)
+    assert np.isinf(nearest[~within]).all()
+
+
 def test_records_of_some_trees_only_are_those_of_the_whole_map():
     trees = [tracked(i, E0 + 0.6 * (i % 5), N0 + 0.4 * i) for i in range(12)]
     field_map = [field_tree(f"F{j}", E0 + 0.5 * j, N0 + 0.4 * j) for j in range(12)]

@@ -116,3 +116,62 @@ def test_geojson_is_json_dumps_text_and_reused(tmp_path):
             )
             f.write("\n")
         assert (tmp_path / "ours.geojson").read_bytes() == (tmp_path / "json.geojson").read_bytes()
+
+
+def test_missing_trees_taken_in_piece_by_piece_are_those_of_the_whole_path(tmp_path):
+    """Each export takes in the path driven since the last one (`RunWriter.missing`). On
+    a twin survey that starts without a fix (its path first in odom, placed once the map
+    is re-anchored to UTM) and with two field-map trees that are not there, the missing
+    trees after every 5 scans are those the whole path gives: each field-map tree's
+    nearest approach by a k-d tree over every path point placed so far, as before."""
+    from scipy.spatial import cKDTree
+
+    from treetraits.drivers import recording as rec
+    from treetraits.drivers.calibration import load_calibration
+    from treetraits.pipeline.fieldmap import load_field_map
+    from treetraits.pipeline.georef import FieldMapIndex, georeference, missing_trees
+    from treetraits.service.config import ServiceConfig
+    from treetraits.service.replay import make_processor
+    from treetraits.sim.gnss import GnssSettings
+    from treetraits.sim.orchard import TreeSettings
+    from treetraits.sim.run import SurveySettings, simulate_survey
+
+    settings = SurveySettings(
+        path="straight",
+        goal=12.0,
+        seed=1,
+        trees=TreeSettings(missing=2),
+        # Longer than the 10 s scans wait for a first fix: the run maps in odom first.
+        gnss=GnssSettings(outages=((0.0, 13.0),)),
+    )
+    result = simulate_survey(tmp_path / "late.mcap", settings)
+    with rec.read_recording(result.recording) as recording:
+        calibration = load_calibration(recording.metadata.calibration)
+        messages = [(m.topic, bytes(m.data), m.log_time, m.publish_time) for m in recording]
+    processor = make_processor(ServiceConfig(), calibration)
+    field_map = load_field_map(result.field_map)
+    (tmp_path / "out").mkdir()
+    writer = RunWriter(tmp_path / "out", processor, field_map)
+    checked, seen_odom, seen_missing = 0, False, 0
+    for message in messages:
+        for outcome in processor.feed(*message):
+            writer.commit(outcome)
+            seen_odom |= outcome.pose is not None and outcome.pose.frame == "odom"
+            if writer.scans % 5:
+                continue
+            found = writer.georeferenced()
+            missing = writer.missing(found)
+            grid = processor.localizer.grid
+            if grid is None:
+                assert missing == []
+                continue
+            path = georeference(writer._path, grid, (), utm_from_odom=processor.utm_from_odom)
+            xy = np.array([(p.easting, p.northing) for p in path if p.easting is not None])
+            index = FieldMapIndex(field_map, grid)
+            passed, _ = cKDTree(xy).query(index.xy)
+            assert missing == missing_trees(index, found, passed, writer.missing_range_m)
+            checked += 1
+            seen_missing = max(seen_missing, len(missing))
+    writer.close()
+    assert seen_odom and processor.anchor is not None  # the path began in odom
+    assert checked > 10 and seen_missing == 2
