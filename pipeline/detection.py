@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from treetraits.pipeline.classify import Shape, horizontal_extent, judge, roughness, shape_of
-from treetraits.pipeline.clustering import euclidean_clusters, stable_order
+from treetraits.pipeline.clustering import euclidean_clusters, planar_clusters, stable_order
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -524,7 +524,7 @@ def _band_blobs(
     xy = band_xyz[:, :2]
     # Clustered in x-y alone: the same pairs as with z = 0, one dimension less to search.
     found = []
-    for mine in _groups(euclidean_clusters(xy, 0.25)):
+    for mine in _groups(planar_clusters(xy, 0.25)):
         if len(mine) < config.min_trunk_points:
             continue
         part = xy[mine]

@@ -13,7 +13,12 @@ from tests.conftest import first_complete_scan
 from tests.test_classify import scan_of
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.drivers.records import POINT_DTYPE
-from treetraits.pipeline.clustering import attach, connected_labels, euclidean_clusters
+from treetraits.pipeline.clustering import (
+    attach,
+    connected_labels,
+    euclidean_clusters,
+    planar_clusters,
+)
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -190,6 +195,28 @@ def test_kdtree_and_dbscan_cluster_a_twin_scan_alike(tree_scan):
     a = euclidean_clusters(voxels, 0.5, "kdtree")
     b = euclidean_clusters(voxels, 0.5, "dbscan")
     assert np.array_equal(a, b)
+
+
+def test_planar_clusters_are_the_kdtrees():
+    """The grid's labels against the k-d tree's, past the size where the grid takes over:
+    dense blobs (cells joined without a look), sparse scatter (pairs looked at 2-3 cells
+    apart), chains just under and just over the tolerance along both axes and diagonally."""
+    rng = np.random.default_rng(7)
+    blobs = np.vstack([rng.normal(c, 0.08, (300, 2)) for c in ([0, 0], [0.6, 0.1], [3, -2])])
+    scatter = rng.uniform(-6, 6, (1500, 2))
+    steps = np.arange(40)[:, None]
+    chains = np.vstack(
+        [
+            [10, 10] + steps * [0.249, 0],
+            [10, 12] + steps * [0.251, 0],
+            [10, 14] + steps * [0, 0.2499],
+            [20, 10] + steps * [0.176, 0.176],
+            [20, 14] + steps * [0.177, 0.177],
+        ]
+    )
+    for xy in (np.vstack([blobs, scatter, chains]), scatter, np.vstack([chains, blobs])):
+        for tolerance in (0.25, 0.5):
+            assert np.array_equal(planar_clusters(xy, tolerance), euclidean_clusters(xy, tolerance))
 
 
 def test_connected_labels_are_scipys():
