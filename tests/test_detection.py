@@ -28,6 +28,7 @@ from treetraits.pipeline.config import (
 )
 from treetraits.pipeline.detection import (
     FLAT,
+    _narrower,
     crop_mask,
     detect,
     fit_ground,
@@ -217,6 +218,26 @@ def test_planar_clusters_are_the_kdtrees():
     for xy in (np.vstack([blobs, scatter, chains]), scatter, np.vstack([chains, blobs])):
         for tolerance in (0.25, 0.5):
             assert np.array_equal(planar_clusters(xy, tolerance), euclidean_clusters(xy, tolerance))
+
+
+def test_a_box_short_of_a_width_proves_the_group_narrower():
+    """`_narrower` says narrower only where the 12 bearings' width is; groups around
+    the width, along either axis, diagonally and as a line, both sides of it."""
+    from treetraits.pipeline.classify import horizontal_extent
+
+    rng = np.random.default_rng(5)
+    groups = []
+    for size in rng.uniform(0.2, 1.0, 300):
+        part = rng.uniform(0, size, (int(rng.integers(1, 40)), 2))
+        groups.append(part @ np.array([[1, 1], [-1, 1]]) / np.sqrt(2) if size > 0.6 else part)
+    groups += [np.array([[0.0, 0.0], [0.5 - 1e-7, 0.0]]), np.array([[0.0, 0.0], [0.3, 0.4]])]
+    xy = np.vstack(groups)
+    starts = np.cumsum([0] + [len(g) for g in groups[:-1]])
+    narrow = _narrower(xy, starts, 0.5)
+    widths = np.array([horizontal_extent(g) for g in groups])
+    assert (widths[narrow] < 0.5).all()
+    assert narrow.any() and not narrow.all()
+    assert not narrow[-1] and not narrow[-2]
 
 
 def test_connected_labels_are_scipys():
