@@ -16,7 +16,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from treetraits.pipeline.classify import Shape, horizontal_extent, judge, roughness, shape_of
+from treetraits.pipeline.classify import (
+    Shape,
+    horizontal_extent,
+    judge,
+    roughness,
+    roughness_of_groups,
+    shape_of,
+)
 from treetraits.pipeline.clustering import euclidean_clusters, planar_clusters, stable_order
 from treetraits.pipeline.config import (
     ClassifyConfig,
@@ -608,9 +615,16 @@ def _features(
     bounds = np.searchsorted(point_label[order], np.stack([kept, kept + 1]))
     voxel_order = stable_order(labels)
     voxel_bounds = np.searchsorted(labels[voxel_order], np.stack([kept, kept + 1]))
+    # Every cluster's returns gathered once, one slice each: the roughness of all of them
+    # in one pass (`roughness_of_groups`), then each one's points and rings.
+    members_of = [order[bounds[0, k] : bounds[1, k]] for k in range(len(kept))]
+    every = np.concatenate(members_of) if members_of else np.zeros(0, dtype=np.int64)
+    all_points, all_rings = xyz[every], ring[every]
+    sizes = bounds[1] - bounds[0]
+    rough = roughness_of_groups(all_points, all_rings, lidar_xy, sizes)
+    ends = np.cumsum(sizes)
     clusters = []
-    for k in range(len(kept)):
-        members = order[bounds[0, k] : bounds[1, k]]
+    for k, members in enumerate(members_of):
         cells = voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]]
         centroid = cells.mean(axis=0)
         mean_ndvi = float("nan")
@@ -621,8 +635,9 @@ def _features(
             if len(finite):
                 mean_ndvi = float(finite.mean())
         ground_z = float(ground.z_at(centroid[0], centroid[1]))
-        points, rings = xyz[members], ring[members]  # gathered once for both uses
-        shape = shape_of(points, rings, lidar_xy, ground_z, values)
+        points = all_points[ends[k] - sizes[k] : ends[k]]
+        rings = all_rings[ends[k] - sizes[k] : ends[k]]
+        shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]))
         clusters.append(
             Cluster(
                 centroid=centroid,
