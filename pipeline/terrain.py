@@ -144,13 +144,15 @@ def _lowest_layer(xyz, config: TerrainConfig, x0, y0, nx, ny) -> np.ndarray:
     i = np.floor((xyz[:, 0] - x0) / c).astype(np.int64)
     j = np.floor((xyz[:, 1] - y0) / c).astype(np.int64)
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
-    cell = (i * ny + j)[inside]
-    z = xyz[inside, 2]
+    cell, z = i * ny + j, xyz[:, 2]
+    if not inside.all():  # the cropped points are inside but on the box's far edges
+        cell, z = cell[inside], z[inside]
     lowest = np.full(nx * ny, np.inf)
     np.minimum.at(lowest, cell, z)
     layer = z <= lowest[cell] + config.lowest_layer_m
-    total = np.bincount(cell[layer], weights=z[layer], minlength=nx * ny)
-    count = np.bincount(cell[layer], minlength=nx * ny)
+    cell = cell[layer]
+    total = np.bincount(cell, weights=z[layer], minlength=nx * ny)
+    count = np.bincount(cell, minlength=nx * ny)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
     return mean.reshape(nx, ny)
