@@ -21,6 +21,7 @@ are in (`base` for detection), with z up and the robot's footprint at the origin
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -209,18 +210,45 @@ def _median3(ground: np.ndarray) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=32)
+def _gaussian_weights(sigma: float, truncate: float) -> np.ndarray:
+    """The weights scipy.ndimage.gaussian_filter1d correlates with, read off its response
+    to an impulse (each output one weight times one plus zeros: the weights exactly),
+    once per width: the fill's widths are the same every scan."""
+    from scipy import ndimage
+
+    radius = int(truncate * float(sigma) + 0.5)
+    impulse = np.zeros(2 * radius + 1)
+    impulse[radius] = 1.0
+    weights = ndimage.gaussian_filter1d(impulse, sigma, mode="constant", truncate=truncate)
+    weights = weights[::-1].copy()
+    weights.flags.writeable = False
+    return weights
+
+
+def _gaussian(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """scipy.ndimage.gaussian_filter(values, sigma, mode="constant") with `weights` from
+    `_gaussian_weights`: its two correlations, along the first axis and then in place
+    along the second, without its per-call kernel and argument work."""
+    from scipy import ndimage
+
+    out = ndimage.correlate1d(values, weights, 0, None, mode="constant", cval=0.0, origin=0)
+    ndimage.correlate1d(out, weights, 1, out, mode="constant", cval=0.0, origin=0)
+    return out
+
+
 def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float) -> np.ndarray:
     """Ground under objects and in shadows: a Gaussian-weighted mean of the accepted
     ground around (normalised convolution), widening until every cell has some."""
-    from scipy import ndimage
 
     known = accepted & np.isfinite(ground)
     values = np.where(known, ground, 0.0)
     out = np.where(known, ground, np.nan)
     sigma = sigma_m / cell
     while np.isnan(out).any():
-        total = ndimage.gaussian_filter(values, sigma, mode="constant", truncate=3.0)
-        weight = ndimage.gaussian_filter(known.astype(float), sigma, mode="constant", truncate=3.0)
+        weights = _gaussian_weights(sigma, 3.0)
+        total = _gaussian(values, weights)
+        weight = _gaussian(known.astype(float), weights)
         fill = np.isnan(out) & (weight > 1e-6)
         out[fill] = total[fill] / weight[fill]
         if sigma > max(ground.shape):
