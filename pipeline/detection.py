@@ -20,7 +20,6 @@ from treetraits.pipeline.classify import (
     Shape,
     horizontal_extent,
     judge,
-    roughness,
     roughness_of_groups,
     shape_of,
 )
@@ -447,20 +446,29 @@ def cluster_trunks(
     returns to tell: not counted), a tree spacing from any other (`_trunks`). Two or
     more: a neighbour's trunk beside it, and no telling which is the tree's."""
     under = _blobs_under(labels, voxels, crown, trunk_blobs)
+    bark = _is_bark([trunk_blobs[k] for k in np.flatnonzero(under >= 0)], lidar_xy, classify)
+    bark_of = dict(zip(np.flatnonzero(under >= 0).tolist(), bark, strict=True))
     found = {}
     for label in np.unique(under[under >= 0]):
-        mine = [trunk_blobs[k] for k in np.flatnonzero(under == label)]
-        kept = _trunks([blob for blob in mine if _is_bark(blob, lidar_xy, classify)], config)
+        mine = [trunk_blobs[k] for k in np.flatnonzero(under == label) if bark_of[k]]
+        kept = _trunks(mine, config)
         if len(kept) == 1:
             found[int(label)] = kept[0].axis
     return found
 
 
-def _is_bark(blob: BandBlob, lidar_xy: np.ndarray, classify: ClassifyConfig) -> bool:
-    """Smooth along the rings (`classify.roughness`), as bark is; NaN (too few returns to
-    tell) is not."""
-    rough = roughness(blob.xyz, blob.ring, lidar_xy)
-    return math.isfinite(rough) and rough < classify.min_roughness_m
+def _is_bark(blobs: list[BandBlob], lidar_xy: np.ndarray, classify: ClassifyConfig) -> list[bool]:
+    """Which blobs are smooth along the rings (`classify.roughness`), as bark is; NaN
+    (too few returns to tell) is not. All in one pass (`roughness_of_groups`)."""
+    if not blobs:
+        return []
+    rough = roughness_of_groups(
+        np.concatenate([blob.xyz for blob in blobs]),
+        np.concatenate([blob.ring for blob in blobs]),
+        lidar_xy,
+        np.array([len(blob.xyz) for blob in blobs]),
+    )
+    return [bool(r < classify.min_roughness_m) for r in rough]  # NaN: never
 
 
 def _blobs_under(
