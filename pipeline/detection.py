@@ -16,8 +16,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from treetraits.pipeline.classify import Shape, horizontal_extent, judge, roughness, shape_of
-from treetraits.pipeline.clustering import euclidean_clusters, stable_order
+from treetraits.pipeline.classify import (
+    Shape,
+    horizontal_extent,
+    judge,
+    roughness_of_groups,
+    shape_of,
+)
+from treetraits.pipeline.clustering import euclidean_clusters, planar_clusters, stable_order
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -384,12 +390,17 @@ def split_at_trunks(
     looked at (a single crown, even an old one, has one trunk). Returns the new voxel
     labels and how many clusters were cut."""
     clustered = np.flatnonzero(labels >= 0)
+    if len(clustered) == 0:
+        return labels, 0
     order = clustered[stable_order(labels[clustered])]
     starts = np.flatnonzero(np.diff(labels[order], prepend=-2))
+    ends = np.append(starts[1:], len(order))
+    reach = 2 * config.min_tree_spacing_m
+    wide = ~_narrower(voxels[order, :2], starts, reach)
     long = [
-        cells
-        for cells in np.split(order, starts[1:])
-        if len(cells) and horizontal_extent(voxels[cells, :2]) >= 2 * config.min_tree_spacing_m
+        order[start:end]
+        for start, end in zip(starts[wide], ends[wide], strict=True)
+        if horizontal_extent(voxels[order[start:end], :2]) >= reach
     ]
     if not long:
         return labels, 0
@@ -409,6 +420,15 @@ def split_at_trunks(
     return labels, cut
 
 
+def _narrower(xy: np.ndarray, starts: np.ndarray, width: float) -> np.ndarray:
+    """Which groups (`xy[starts[k]:starts[k + 1]]`, each non-empty, the last to the end)
+    are narrower than `width` (`horizontal_extent`) for sure: no width exceeds the
+    bounding box's diagonal, and a box a micrometre short of it (far beyond rounding)
+    proves it without the 12 bearings."""
+    span = np.maximum.reduceat(xy, starts, axis=0) - np.minimum.reduceat(xy, starts, axis=0)
+    return (span**2).sum(axis=1) < (width - 1e-6) ** 2
+
+
 def cluster_trunks(
     labels: np.ndarray,
     voxels: np.ndarray,
@@ -426,20 +446,29 @@ def cluster_trunks(
     returns to tell: not counted), a tree spacing from any other (`_trunks`). Two or
     more: a neighbour's trunk beside it, and no telling which is the tree's."""
     under = _blobs_under(labels, voxels, crown, trunk_blobs)
+    bark = _is_bark([trunk_blobs[k] for k in np.flatnonzero(under >= 0)], lidar_xy, classify)
+    bark_of = dict(zip(np.flatnonzero(under >= 0).tolist(), bark, strict=True))
     found = {}
     for label in np.unique(under[under >= 0]):
-        mine = [trunk_blobs[k] for k in np.flatnonzero(under == label)]
-        kept = _trunks([blob for blob in mine if _is_bark(blob, lidar_xy, classify)], config)
+        mine = [trunk_blobs[k] for k in np.flatnonzero(under == label) if bark_of[k]]
+        kept = _trunks(mine, config)
         if len(kept) == 1:
             found[int(label)] = kept[0].axis
     return found
 
 
-def _is_bark(blob: BandBlob, lidar_xy: np.ndarray, classify: ClassifyConfig) -> bool:
-    """Smooth along the rings (`classify.roughness`), as bark is; NaN (too few returns to
-    tell) is not."""
-    rough = roughness(blob.xyz, blob.ring, lidar_xy)
-    return math.isfinite(rough) and rough < classify.min_roughness_m
+def _is_bark(blobs: list[BandBlob], lidar_xy: np.ndarray, classify: ClassifyConfig) -> list[bool]:
+    """Which blobs are smooth along the rings (`classify.roughness`), as bark is; NaN
+    (too few returns to tell) is not. All in one pass (`roughness_of_groups`)."""
+    if not blobs:
+        return []
+    rough = roughness_of_groups(
+        np.concatenate([blob.xyz for blob in blobs]),
+        np.concatenate([blob.ring for blob in blobs]),
+        lidar_xy,
+        np.array([len(blob.xyz) for blob in blobs]),
+    )
+    return [bool(r < classify.min_roughness_m) for r in rough]  # NaN: never
 
 
 def _blobs_under(
@@ -524,7 +553,7 @@ def _band_blobs(
     xy = band_xyz[:, :2]
     # Clustered in x-y alone: the same pairs as with z = 0, one dimension less to search.
     found = []
-    for mine in _groups(euclidean_clusters(xy, 0.25)):
+    for mine in _groups(planar_clusters(xy, 0.25)):
         if len(mine) < config.min_trunk_points:
             continue
         part = xy[mine]
@@ -594,9 +623,16 @@ def _features(
     bounds = np.searchsorted(point_label[order], np.stack([kept, kept + 1]))
     voxel_order = stable_order(labels)
     voxel_bounds = np.searchsorted(labels[voxel_order], np.stack([kept, kept + 1]))
+    # Every cluster's returns gathered once, one slice each: the roughness of all of them
+    # in one pass (`roughness_of_groups`), then each one's points and rings.
+    members_of = [order[bounds[0, k] : bounds[1, k]] for k in range(len(kept))]
+    every = np.concatenate(members_of) if members_of else np.zeros(0, dtype=np.int64)
+    all_points, all_rings = xyz[every], ring[every]
+    sizes = bounds[1] - bounds[0]
+    rough = roughness_of_groups(all_points, all_rings, lidar_xy, sizes)
+    ends = np.cumsum(sizes)
     clusters = []
-    for k in range(len(kept)):
-        members = order[bounds[0, k] : bounds[1, k]]
+    for k, members in enumerate(members_of):
         cells = voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]]
         centroid = cells.mean(axis=0)
         mean_ndvi = float("nan")
@@ -607,8 +643,9 @@ def _features(
             if len(finite):
                 mean_ndvi = float(finite.mean())
         ground_z = float(ground.z_at(centroid[0], centroid[1]))
-        points, rings = xyz[members], ring[members]  # gathered once for both uses
-        shape = shape_of(points, rings, lidar_xy, ground_z, values)
+        points = all_points[ends[k] - sizes[k] : ends[k]]
+        rings = all_rings[ends[k] - sizes[k] : ends[k]]
+        shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]))
         clusters.append(
             Cluster(
                 centroid=centroid,

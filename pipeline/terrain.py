@@ -21,6 +21,7 @@ are in (`base` for detection), with z up and the robot's footprint at the origin
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -45,6 +46,8 @@ class TerrainGrid:
 
     def z_at(self, x, y) -> np.ndarray | float:
         """Ground height at (x, y), bilinear between cell centres (clamped at the edge)."""
+        if np.ndim(x) == 0 and np.ndim(y) == 0:
+            return self._z_at_point(float(x), float(y))
         fx = (np.asarray(x, dtype=float) - self.x0) / self.cell - 0.5
         fy = (np.asarray(y, dtype=float) - self.y0) / self.cell - 0.5
         nx, ny = self.z.shape
@@ -66,6 +69,25 @@ class TerrainGrid:
             + z[row1 + j1] * tx * ty
         )
         return float(out) if np.ndim(out) == 0 else out
+
+    def _z_at_point(self, x: float, y: float) -> float:
+        """`z_at` of one point in Python floats: the same operations in the same order
+        (so the same value), without NumPy's cost per call on 0-d arrays (~20 us; a
+        cluster's ground is one point)."""
+        fx = (x - self.x0) / self.cell - 0.5
+        fy = (y - self.y0) / self.cell - 0.5
+        nx, ny = self.z.shape
+        fx = min(max(fx, 0.0), nx - 1.0)
+        fy = min(max(fy, 0.0), ny - 1.0)
+        i = min(int(fx), nx - 2) if nx > 1 else 0
+        j = min(int(fy), ny - 2) if ny > 1 else 0
+        tx, ty = fx - i, fy - j
+        i1, j1 = min(i + 1, nx - 1), min(j + 1, ny - 1)
+        z = self.z
+        sx, sy = 1 - tx, 1 - ty
+        return float(
+            z[i, j] * sx * sy + z[i1, j] * tx * sy + z[i, j1] * sx * ty + z[i1, j1] * tx * ty
+        )
 
     def height(self, xyz: np.ndarray) -> np.ndarray:
         """Height of each point above the terrain under it (m)."""
@@ -123,13 +145,15 @@ def _lowest_layer(xyz, config: TerrainConfig, x0, y0, nx, ny) -> np.ndarray:
     i = np.floor((xyz[:, 0] - x0) / c).astype(np.int64)
     j = np.floor((xyz[:, 1] - y0) / c).astype(np.int64)
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
-    cell = (i * ny + j)[inside]
-    z = xyz[inside, 2]
+    cell, z = i * ny + j, xyz[:, 2]
+    if not inside.all():  # the cropped points are inside but on the box's far edges
+        cell, z = cell[inside], z[inside]
     lowest = np.full(nx * ny, np.inf)
     np.minimum.at(lowest, cell, z)
     layer = z <= lowest[cell] + config.lowest_layer_m
-    total = np.bincount(cell[layer], weights=z[layer], minlength=nx * ny)
-    count = np.bincount(cell[layer], minlength=nx * ny)
+    cell = cell[layer]
+    total = np.bincount(cell, weights=z[layer], minlength=nx * ny)
+    count = np.bincount(cell, minlength=nx * ny)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
     return mean.reshape(nx, ny)
@@ -186,18 +210,45 @@ def _median3(ground: np.ndarray) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=32)
+def _gaussian_weights(sigma: float, truncate: float) -> np.ndarray:
+    """The weights scipy.ndimage.gaussian_filter1d correlates with, read off its response
+    to an impulse (each output one weight times one plus zeros: the weights exactly),
+    once per width: the fill's widths are the same every scan."""
+    from scipy import ndimage
+
+    radius = int(truncate * float(sigma) + 0.5)
+    impulse = np.zeros(2 * radius + 1)
+    impulse[radius] = 1.0
+    weights = ndimage.gaussian_filter1d(impulse, sigma, mode="constant", truncate=truncate)
+    weights = weights[::-1].copy()
+    weights.flags.writeable = False
+    return weights
+
+
+def _gaussian(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """scipy.ndimage.gaussian_filter(values, sigma, mode="constant") with `weights` from
+    `_gaussian_weights`: its two correlations, along the first axis and then in place
+    along the second, without its per-call kernel and argument work."""
+    from scipy import ndimage
+
+    out = ndimage.correlate1d(values, weights, 0, None, mode="constant", cval=0.0, origin=0)
+    ndimage.correlate1d(out, weights, 1, out, mode="constant", cval=0.0, origin=0)
+    return out
+
+
 def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float) -> np.ndarray:
     """Ground under objects and in shadows: a Gaussian-weighted mean of the accepted
     ground around (normalised convolution), widening until every cell has some."""
-    from scipy import ndimage
 
     known = accepted & np.isfinite(ground)
     values = np.where(known, ground, 0.0)
     out = np.where(known, ground, np.nan)
     sigma = sigma_m / cell
     while np.isnan(out).any():
-        total = ndimage.gaussian_filter(values, sigma, mode="constant", truncate=3.0)
-        weight = ndimage.gaussian_filter(known.astype(float), sigma, mode="constant", truncate=3.0)
+        weights = _gaussian_weights(sigma, 3.0)
+        total = _gaussian(values, weights)
+        weight = _gaussian(known.astype(float), weights)
         fill = np.isnan(out) & (weight > 1e-6)
         out[fill] = total[fill] / weight[fill]
         if sigma > max(ground.shape):

@@ -58,20 +58,23 @@ class BeamsAbove:
         """Whether the beam above the cluster `points[members]` (indices into this scan's
         array) passed over all of it: see the module's docstring."""
         if points is self._points:
-            x, y, z, bearing, span, rings = (values[members] for values in self._by_point)
+            x, y, z, bearing, span, rings = self._by_point
         else:
             mine = points[members]
             x, y, z = (mine[k].astype(float) for k in ("x", "y", "z"))
             bearing, span, rings = np.arctan2(y, x), np.sqrt(x * x + y * y + z * z), mine["ring"]
-        top = int(np.argmax(z))
-        ring = int(rings.max())  # the cluster's highest beam: the next one up
+            members = np.arange(len(mine))
+        # Gathered as needed: heights and rings first (the top ring has no beam above),
+        # x and y at the top alone.
+        top = members[int(np.argmax(z[members]))]
+        ring = int(rings[members].max())  # the cluster's highest beam: the next one up
         if ring >= self.top_ring:
             return False
         # Bearings relative to the top's, so a span across the +-pi seam stays whole.
         centre = float(np.arctan2(y[top], x[top]))  # as before: the scalar arctangent
-        offsets = _wrap(bearing - centre)
+        offsets = _wrap(bearing[members] - centre)
         low, high = offsets.min() - window_rad, offsets.max() + window_rad
-        farthest = float(span.max())
+        farthest = float(span[members].max())
         start, end = self._starts[ring + 1], self._starts[ring + 2]
         above = _wrap(self._bearing[start:end] - centre)
         inside = (above >= low) & (above <= high)

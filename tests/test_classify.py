@@ -26,6 +26,7 @@ from treetraits.pipeline.classify import (
     Votes,
     judge,
     roughness,
+    roughness_of_groups,
 )
 from treetraits.pipeline.config import ClassifyConfig, ClusterConfig, DetectionConfig
 from treetraits.pipeline.detection import detect
@@ -132,6 +133,32 @@ def test_roughness_of_a_smooth_wall_and_of_foliage():
     wall = roughness(points(rng.normal(0, 0.015, len(azimuth))), ring, np.zeros(2))
     foliage = roughness(points(rng.uniform(-0.2, 0.2, len(azimuth))), ring, np.zeros(2))
     assert wall < 0.02 < CONFIG.min_roughness_m < 0.08 < foliage
+
+
+def test_roughness_of_groups_is_each_ones_to_the_bit():
+    """Groups of every size (none, 1-2 returns, too few triples, one ring, many rings,
+    odd and even counts, duplicate bearings) against `roughness` one at a time."""
+    rng = np.random.default_rng(4)
+    groups = []
+    for size in [0, 1, 2, 3, 5, 6, 7, 40, 41, 300, 1200, 0, 2]:
+        azimuth = rng.uniform(-1, 1, size)
+        azimuth[: size // 10] = azimuth[0] if size else 0.0  # repeated bearings
+        r = rng.uniform(3, 9, size)
+        xyz = np.column_stack([r * np.cos(azimuth), r * np.sin(azimuth), rng.uniform(0, 3, size)])
+        groups.append((xyz, rng.integers(0, 1 if size < 50 else 16, size).astype(np.uint8)))
+    lidar_xy = np.array([0.1, -0.05])
+    sizes = np.array([len(xyz) for xyz, _ in groups])
+    found = roughness_of_groups(
+        np.vstack([xyz for xyz, _ in groups]),
+        np.concatenate([ring for _, ring in groups]),
+        lidar_xy,
+        sizes,
+    )
+    each = np.array([roughness(xyz, ring, lidar_xy) for xyz, ring in groups])
+    assert np.isfinite(each).sum() >= 4 and np.isnan(each).sum() >= 4
+    assert np.array_equal(found, each, equal_nan=True)
+    known = np.isfinite(each)
+    assert np.array_equal(found[known].view(np.int64), each[known].view(np.int64))
 
 
 def test_a_track_is_what_most_of_its_verdicts_say():

@@ -13,7 +13,12 @@ from tests.conftest import first_complete_scan
 from tests.test_classify import scan_of
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.drivers.records import POINT_DTYPE
-from treetraits.pipeline.clustering import attach, connected_labels, euclidean_clusters
+from treetraits.pipeline.clustering import (
+    attach,
+    connected_labels,
+    euclidean_clusters,
+    planar_clusters,
+)
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -23,6 +28,7 @@ from treetraits.pipeline.config import (
 )
 from treetraits.pipeline.detection import (
     FLAT,
+    _narrower,
     crop_mask,
     detect,
     fit_ground,
@@ -190,6 +196,48 @@ def test_kdtree_and_dbscan_cluster_a_twin_scan_alike(tree_scan):
     a = euclidean_clusters(voxels, 0.5, "kdtree")
     b = euclidean_clusters(voxels, 0.5, "dbscan")
     assert np.array_equal(a, b)
+
+
+def test_planar_clusters_are_the_kdtrees():
+    """The grid's labels against the k-d tree's, past the size where the grid takes over:
+    dense blobs (cells joined without a look), sparse scatter (pairs looked at 2-3 cells
+    apart), chains just under and just over the tolerance along both axes and diagonally."""
+    rng = np.random.default_rng(7)
+    blobs = np.vstack([rng.normal(c, 0.08, (300, 2)) for c in ([0, 0], [0.6, 0.1], [3, -2])])
+    scatter = rng.uniform(-6, 6, (1500, 2))
+    steps = np.arange(40)[:, None]
+    chains = np.vstack(
+        [
+            [10, 10] + steps * [0.249, 0],
+            [10, 12] + steps * [0.251, 0],
+            [10, 14] + steps * [0, 0.2499],
+            [20, 10] + steps * [0.176, 0.176],
+            [20, 14] + steps * [0.177, 0.177],
+        ]
+    )
+    for xy in (np.vstack([blobs, scatter, chains]), scatter, np.vstack([chains, blobs])):
+        for tolerance in (0.25, 0.5):
+            assert np.array_equal(planar_clusters(xy, tolerance), euclidean_clusters(xy, tolerance))
+
+
+def test_a_box_short_of_a_width_proves_the_group_narrower():
+    """`_narrower` says narrower only where the 12 bearings' width is; groups around
+    the width, along either axis, diagonally and as a line, both sides of it."""
+    from treetraits.pipeline.classify import horizontal_extent
+
+    rng = np.random.default_rng(5)
+    groups = []
+    for size in rng.uniform(0.2, 1.0, 300):
+        part = rng.uniform(0, size, (int(rng.integers(1, 40)), 2))
+        groups.append(part @ np.array([[1, 1], [-1, 1]]) / np.sqrt(2) if size > 0.6 else part)
+    groups += [np.array([[0.0, 0.0], [0.5 - 1e-7, 0.0]]), np.array([[0.0, 0.0], [0.3, 0.4]])]
+    xy = np.vstack(groups)
+    starts = np.cumsum([0] + [len(g) for g in groups[:-1]])
+    narrow = _narrower(xy, starts, 0.5)
+    widths = np.array([horizontal_extent(g) for g in groups])
+    assert (widths[narrow] < 0.5).all()
+    assert narrow.any() and not narrow.all()
+    assert not narrow[-1] and not narrow[-2]
 
 
 def test_connected_labels_are_scipys():

@@ -14,7 +14,7 @@ from tests.conftest import first_complete_scan
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.pipeline.config import DetectionConfig, TerrainConfig
 from treetraits.pipeline.detection import crop_mask, detect, to_base
-from treetraits.pipeline.terrain import fit_terrain
+from treetraits.pipeline.terrain import TerrainGrid, _gaussian, _gaussian_weights, fit_terrain
 from treetraits.sim.lidar import Scene
 from treetraits.sim.orchard import TreeSpec, tree_mesh
 
@@ -167,3 +167,32 @@ def test_a_lone_low_return_across_a_gap_is_not_ground():
     post = np.column_stack([np.full(30, 10.0), np.full(30, 0.0), np.linspace(0.3, 1.5, 30)])
     terrain = fit_terrain(np.vstack([near, post]), TerrainConfig(), (-15, 15), (-15, 15))
     assert terrain.z_at(10.0, 0.0) == pytest.approx(0.0, abs=0.02)
+
+
+@pytest.mark.parametrize("shape", [(60, 60), (7, 3), (1, 5), (5, 1), (1, 1)])
+def test_one_points_ground_is_the_arrays_to_the_bit(shape):
+    """`z_at` of one point (Python floats) against the same points as an array, at random
+    spots and on cell centres, inside the grid and clamped outside it."""
+    rng = np.random.default_rng(1)
+    ones = np.ones(shape, dtype=bool)
+    grid = TerrainGrid(-15.0, -15.0, 0.5, rng.normal(0, 1, shape), ones, ones)
+    x, y = rng.uniform(-20, 20, 2000), rng.uniform(-20, 20, 2000)
+    x[:50] = -14.75 + 0.5 * np.arange(50)
+    each = np.array([grid.z_at(a, b) for a, b in zip(x, y, strict=True)])
+    assert isinstance(grid.z_at(x[0], y[0]), float)
+    assert np.array_equal(each.view(np.int64), grid.z_at(x, y).view(np.int64))
+
+
+def test_the_fills_gaussian_is_scipys_to_the_bit():
+    """`_gaussian` with cached weights against scipy.ndimage.gaussian_filter, at the fill's
+    widths and past the grid's size, on sparse ground as the fill sees it."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(2)
+    for shape in [(60, 60), (7, 3), (1, 1)]:
+        known = rng.random(shape) < 0.3
+        values = np.where(known, rng.normal(0, 0.3, shape), 0.0)
+        for sigma in (2.0, 4.0, 8.0, 64.0, 0.7):
+            want = ndimage.gaussian_filter(values, sigma, mode="constant", truncate=3.0)
+            got = _gaussian(values, _gaussian_weights(sigma, 3.0))
+            assert np.array_equal(got.view(np.int64), want.view(np.int64))
