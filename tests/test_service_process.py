@@ -358,7 +358,24 @@ def _within(a: float | None, b: float | None, rel: float) -> bool:
     return abs(a - b) <= rel * max(abs(a), abs(b))
 
 
-def _wait_caught_up(service: Service, timeout: float, count: str = "recorded") -> None:
+def _play_through(service: Service, player: RecordingPlayer, survey, count: str) -> int:
+    """The survey played into the service until it has taken every packet played and
+    caught up (`_wait_caught_up` by `count`), then SIGTERM: the exit code."""
+    service.wait_ready()
+    player.start()
+    assert player.wait(timeout=survey.duration_s + 30)
+    played = player.counters["lidar_sent"]
+    service.wait_for(
+        lambda s: counter(s, "lidar_packets") + max(counter(s, "kernel_drops"), 0) >= played,
+        20,
+        "with every played packet taken",
+    )
+    _wait_caught_up(service, 60, count)
+    code, _ = service.terminate()
+    return code
+
+
+def _wait_caught_up(service: Service, timeout: float, count: str) -> None:
     """The loop has handled what its queues held: two new STATUS lines in a row with
     nothing more `count`ed (recorded messages, or committed scans). A loaded machine's
     loop falls seconds behind the packets it took; a SIGTERM then leaves the end of the
@@ -395,17 +412,7 @@ def test_live_and_replay_write_the_same_trees(survey, tmp_path):
     config = write_config(tmp_path, survey, player, localization=latency, service=never_shed)
     service = Service(tmp_path, config, "--record")
     try:
-        service.wait_ready()
-        player.start()
-        assert player.wait(timeout=survey.duration_s + 30)
-        played = player.counters["lidar_sent"]
-        service.wait_for(
-            lambda s: counter(s, "lidar_packets") + max(counter(s, "kernel_drops"), 0) >= played,
-            20,
-            "with every played packet taken",
-        )
-        _wait_caught_up(service, 60)
-        code, _ = service.terminate()
+        code = _play_through(service, player, survey, "recorded")
     finally:
         player.close()
         service.close()
@@ -461,21 +468,12 @@ def test_a_wheel_link_that_comes_late_maps_every_scan(survey, tmp_path):
     late_port = tmp_path / "jackal-late"
     config = write_config(tmp_path, survey, player, wheels=f'port = "{late_port}"')
     service = Service(tmp_path, config)
+    appear = threading.Timer(3.0, lambda: late_port.symlink_to(player.wheels_device))
     try:
         service.wait_ready()
-        player.start()
-        appear = threading.Timer(3.0, lambda: late_port.symlink_to(player.wheels_device))
-        appear.start()
-        assert player.wait(timeout=survey.duration_s + 30)
+        appear.start()  # as the survey starts
+        code = _play_through(service, player, survey, "scans")
         appear.join()
-        played = player.counters["lidar_sent"]
-        service.wait_for(
-            lambda s: counter(s, "lidar_packets") + max(counter(s, "kernel_drops"), 0) >= played,
-            20,
-            "with every played packet taken",
-        )
-        _wait_caught_up(service, 60, "scans")
-        code, _ = service.terminate()
     finally:
         player.close()
         service.close()
@@ -503,17 +501,7 @@ def test_a_loop_behind_its_sensors_sheds_scans_not_packets(survey, tmp_path):
     )
     service = Service(tmp_path, config)
     try:
-        service.wait_ready()
-        player.start()
-        assert player.wait(timeout=survey.duration_s + 30)
-        played = player.counters["lidar_sent"]
-        service.wait_for(
-            lambda s: counter(s, "lidar_packets") + max(counter(s, "kernel_drops"), 0) >= played,
-            20,
-            "with every played packet taken",
-        )
-        _wait_caught_up(service, 60, "scans")
-        code, _ = service.terminate()
+        code = _play_through(service, player, survey, "scans")
     finally:
         player.close()
         service.close()
