@@ -96,32 +96,16 @@ def roughness(points: np.ndarray, ring: np.ndarray, lidar_xy: np.ndarray) -> flo
     the three lie on one smooth curve and the distance is the range noise (measured on
     the real indoor captures: 0.004-0.03 m); in foliage consecutive beams hit different
     leaves decimetres apart in depth. NaN with fewer than 5 such triples."""
-    if len(points) < 3:
-        return math.nan
-    azimuth = np.arctan2(points[:, 1] - lidar_xy[1], points[:, 0] - lidar_xy[0])
-    order = np.lexsort((azimuth, ring))
-    p, r, a = points[order], ring[order], azimuth[order]
-    gap = np.abs(np.angle(np.exp(1j * np.diff(a))))
-    same = r[1:] == r[:-1]
-    if not same.any():
-        return math.nan
-    # Neighbours: consecutive firings of the ring, not across a hole (an occlusion, a
-    # dropped return): at most 2.5 firing steps apart.
-    step = median(gap[same])
-    adjacent = same & (gap <= 2.5 * step)
-    triple = adjacent[:-1] & adjacent[1:]
-    if triple.sum() < 5:
-        return math.nan
-    middle = (p[:-2] + p[2:]) / 2
-    return median(np.linalg.norm(p[1:-1] - middle, axis=1)[triple])
+    return float(roughness_of_groups(points, ring, lidar_xy, np.array([len(points)]))[0])
 
 
 def roughness_of_groups(
     points: np.ndarray, ring: np.ndarray, lidar_xy: np.ndarray, sizes: np.ndarray
 ) -> np.ndarray:
-    """`roughness` of each group of consecutive returns (`sizes[k]` of them) at once, the
-    same values: a scan's clusters in one pass, not ~25 NumPy calls each. The groups are
-    kept apart by a leading sort key and by no pair or triple spanning two of them."""
+    """`roughness` of each group of consecutive returns (`sizes[k]` of them) at once: a
+    scan's clusters in one pass, not ~25 NumPy calls each. The groups are kept apart by a
+    leading sort key and by no pair or triple spanning two of them; NaN for a group of
+    fewer than 3 returns or 5 triples."""
     groups = len(sizes)
     owner = np.repeat(np.arange(groups), sizes)
     azimuth = np.arctan2(points[:, 1] - lidar_xy[1], points[:, 0] - lidar_xy[0])

@@ -54,9 +54,11 @@ class GroundPlane:
         """Vertical height of each point above the plane (m)."""
         return (xyz @ self.normal + self.d) / self.normal[2]
 
-    def z_at(self, x: float, y: float) -> float:
+    def z_at(self, x, y) -> np.ndarray | float:
+        """The plane's z at (x, y): points or arrays of them."""
         a, b, c = self.normal
-        return float(-(a * x + b * y + self.d) / c)
+        z = -(a * np.asarray(x, dtype=float) + b * np.asarray(y, dtype=float) + self.d) / c
+        return float(z) if np.ndim(z) == 0 else z
 
     @property
     def tilt_deg(self) -> float:
@@ -347,7 +349,7 @@ def detect(
     window = math.radians(config.cluster.top_window_deg)
 
     def top_seen(members: np.ndarray) -> bool:
-        return beams.top_seen(source[members], points, window, config.cluster.tolerance_m)
+        return beams.top_seen(source[members], window, config.cluster.tolerance_m)
 
     clusters = _features(
         clusters_kept,
@@ -631,10 +633,15 @@ def _features(
     sizes = bounds[1] - bounds[0]
     rough = roughness_of_groups(all_points, all_rings, lidar_xy, sizes)
     ends = np.cumsum(sizes)
+    cells_of = [
+        voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]] for k in range(len(kept))
+    ]
+    centroids = np.array([cells.mean(axis=0) for cells in cells_of]).reshape(-1, 3)
+    # The ground under every cluster's centroid in one call, not one call each (~20 us).
+    ground_zs = np.atleast_1d(ground.z_at(centroids[:, 0], centroids[:, 1]))
     clusters = []
     for k, members in enumerate(members_of):
-        cells = voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]]
-        centroid = cells.mean(axis=0)
+        cells, centroid = cells_of[k], centroids[k]
         mean_ndvi = float("nan")
         values = None
         if ndvi is not None:
@@ -642,7 +649,7 @@ def _features(
             finite = values[np.isfinite(values)]
             if len(finite):
                 mean_ndvi = float(finite.mean())
-        ground_z = float(ground.z_at(centroid[0], centroid[1]))
+        ground_z = float(ground_zs[k])
         points = all_points[ends[k] - sizes[k] : ends[k]]
         rings = all_rings[ends[k] - sizes[k] : ends[k]]
         shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]))

@@ -49,21 +49,12 @@ class BeamsAbove:
         self._starts = np.searchsorted(ring[order], np.arange(self.top_ring + 2))
         # Per return in the scan's order, for the clusters' own returns: what top_seen
         # worked out again for each cluster, the same values gathered.
-        self._points = points
         self._by_point = (x, y, z, bearing, span, points["ring"])
 
-    def top_seen(
-        self, members: np.ndarray, points: np.ndarray, window_rad: float, reach_m: float
-    ) -> bool:
-        """Whether the beam above the cluster `points[members]` (indices into this scan's
-        array) passed over all of it: see the module's docstring."""
-        if points is self._points:
-            x, y, z, bearing, span, rings = self._by_point
-        else:
-            mine = points[members]
-            x, y, z = (mine[k].astype(float) for k in ("x", "y", "z"))
-            bearing, span, rings = np.arctan2(y, x), np.sqrt(x * x + y * y + z * z), mine["ring"]
-            members = np.arange(len(mine))
+    def top_seen(self, members: np.ndarray, window_rad: float, reach_m: float) -> bool:
+        """Whether the beam above the cluster `members` (indices into the scan this was
+        built on) passed over all of it: see the module's docstring."""
+        x, y, z, bearing, span, rings = self._by_point
         # Gathered as needed: heights and rings first (the top ring has no beam above),
         # x and y at the top alone.
         top = members[int(np.argmax(z[members]))]

@@ -171,7 +171,7 @@ def test_a_lone_low_return_across_a_gap_is_not_ground():
 
 @pytest.mark.parametrize("shape", [(60, 60), (7, 3), (1, 5), (5, 1), (1, 1)])
 def test_one_points_ground_is_the_arrays_to_the_bit(shape):
-    """`z_at` of one point (Python floats) against the same points as an array, at random
+    """`z_at` of one point at a time against the same points as an array, at random
     spots and on cell centres, inside the grid and clamped outside it."""
     rng = np.random.default_rng(1)
     ones = np.ones(shape, dtype=bool)

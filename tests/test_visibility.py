@@ -54,17 +54,17 @@ FAR_OFF = (15, -120.0, 20.0)
 )
 def test_the_beam_above_decides(above, seen):
     points = returns(*CLUSTER, *above, FAR_OFF)
-    assert BeamsAbove(points).top_seen(np.arange(2), points, WINDOW, 0.5) is seen
+    assert BeamsAbove(points).top_seen(np.arange(2), WINDOW, 0.5) is seen
 
 
 def test_no_beam_above_the_top_beam_and_the_seam_of_bearings():
     points = returns((15, 30.0, 8.0), (3, 0.0, 4.0))
-    assert not BeamsAbove(points).top_seen(np.arange(1), points, WINDOW, 0.5)
+    assert not BeamsAbove(points).top_seen(np.arange(1), WINDOW, 0.5)
     # 179.7 and -179.8 deg are 0.5 deg apart across the seam: the nearer one hides it.
     points = returns((12, 179.7, 8.0), (13, -179.8, 5.0), FAR_OFF)
-    assert not BeamsAbove(points).top_seen(np.arange(1), points, WINDOW, 0.5)
+    assert not BeamsAbove(points).top_seen(np.arange(1), WINDOW, 0.5)
     points = returns((12, 179.7, 8.0), (13, -177.0, 5.0), FAR_OFF)
-    assert BeamsAbove(points).top_seen(np.arange(1), points, WINDOW, 0.5)
+    assert BeamsAbove(points).top_seen(np.arange(1), WINDOW, 0.5)
 
 
 def tree_clusters(*specs: TreeSpec):
