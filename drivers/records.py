@@ -31,6 +31,17 @@ POINT_DTYPE = np.dtype(
 )
 
 
+def take_points(points: np.ndarray, index: np.ndarray | slice) -> np.ndarray:
+    """`points[index]` (a new array) for a structured array such as `POINT_DTYPE`, copied
+    as whole records. NumPy copies a packed structured dtype field by field, record by
+    record: ~35 ns a point, 30x the copy of the same bytes (0.6 ms for a 17k-point scan)."""
+    records = points.view(np.dtype((np.void, points.dtype.itemsize)))
+    taken = records[index]
+    if isinstance(index, slice):
+        taken = taken.copy()  # a slice is a view
+    return taken.view(points.dtype)
+
+
 @dataclass(frozen=True, slots=True)
 class Scan:
     """One LiDAR rotation.

@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from treetraits.drivers.records import Scan
+from treetraits.drivers.records import Scan, take_points
 
 
 def scan_point_host_times(scan: Scan, points: np.ndarray | None = None) -> np.ndarray:
@@ -112,7 +112,7 @@ def deskew_scan(
     T_base_lidar: np.ndarray | None = None,
 ) -> Scan:
     """The scan with every point de-skewed to `t_ref` (host clock); other fields kept."""
-    points = scan.points.copy()
+    points = take_points(scan.points, slice(None))
     # Straight into float64, as `deskew` works (one conversion, not a float32 stack first).
     xyz = np.empty((len(points), 3))
     xyz[:, 0], xyz[:, 1], xyz[:, 2] = points["x"], points["y"], points["z"]

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from treetraits.drivers.calibration import Calibration
-from treetraits.drivers.records import Frame, Pose, Scan
+from treetraits.drivers.records import Frame, Pose, Scan, take_points
 from treetraits.pipeline.classify import FLOATING, LOW, TREE, Votes
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
@@ -632,7 +632,7 @@ class _NdviOf:
     def __call__(self, index: np.ndarray) -> np.ndarray:
         from treetraits.pipeline.fusion import MAPPER_REDUCTION, fuse_scan
 
-        sub = replace(self.scan, points=self.points[index])
+        sub = replace(self.scan, points=take_points(self.points, index))
         fused = fuse_scan(
             sub, [self.frame], self.calibration, keep_ndvi_frame=False, reduction=MAPPER_REDUCTION
         )

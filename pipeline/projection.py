@@ -10,6 +10,7 @@ over arrays and records; the rules are written out in docs/ndvi_projection.md.
 from __future__ import annotations
 
 import enum
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -51,6 +52,12 @@ def max_valid_radius(dist: Sequence[float]) -> float:
     Past it the polynomial folds back and a point far outside the field of view would land
     inside the image; such points are OUTSIDE. inf when the model never folds.
     """
+    return _max_valid_radius(tuple(float(k) for k in dist))
+
+
+@functools.lru_cache(maxsize=16)
+def _max_valid_radius(dist: tuple[float, ...]) -> float:
+    # Once per camera, not per scan: np.roots costs ~0.3 ms.
     k1, k2, _, _, k3 = (list(dist) + [0.0] * 5)[:5]
     # d/dr of r (1 + k1 r^2 + k2 r^4 + k3 r^6), in s = r^2: 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3
     roots = np.roots(np.trim_zeros([7 * k3, 5 * k2, 3 * k1, 1.0], "f"))

@@ -14,6 +14,7 @@ from treetraits.errors import ConfigError
 from treetraits.pipeline.localization.attitude import (
     GRAVITY,
     AttitudeFilter,
+    cross3,
     rotation_zyx,
 )
 from treetraits.pipeline.localization.config import LocalizationConfig
@@ -203,3 +204,11 @@ def test_the_mapper_places_the_base_with_roll_and_pitch():
     assert top[2] == pytest.approx(0.5 + math.cos(0.1) * math.cos(-0.2))
     right = np.array([math.sin(0.3), -math.cos(0.3)])  # the robot's right, in the map
     assert (top[:2] - (1.0, 2.0)) @ right == pytest.approx(math.sin(0.1))
+
+
+def test_cross3_is_numpys_cross_bit_for_bit():
+    rng = np.random.default_rng(7)
+    for _ in range(2000):
+        scale = 10.0 ** rng.integers(-6, 4)
+        a, b = rng.normal(size=3) * scale, rng.normal(size=3)
+        assert np.array_equal(cross3(a, b), np.cross(a, b))

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from treetraits.drivers.records import POINT_DTYPE, Scan
+from treetraits.drivers.records import POINT_DTYPE, Scan, take_points
 from treetraits.pipeline.deskew import deskew, deskew_scan, scan_point_host_times
 from treetraits.pipeline.localization.attitude import rotation_zyx
 from treetraits.pipeline.projection import scan_mid_time
@@ -161,3 +161,18 @@ def test_roll_and_pitch_changes_during_the_sweep_are_taken_out():
     # A point 10 m ahead fired at pitch p sits at z = -10 sin(p) in the middle's frame.
     np.testing.assert_allclose(out[:, 2], -10 * np.sin(pitch), atol=2e-3)
     assert np.ptp(out[:, 2]) > 0.6
+
+
+def test_take_points_is_indexing_as_a_copy():
+    rng = np.random.default_rng(3)
+    points = np.zeros(500, dtype=POINT_DTYPE)
+    for name in POINT_DTYPE.names:
+        points[name] = rng.integers(0, 200, len(points))
+    points["x"] += rng.normal(size=len(points)).astype(np.float32)
+    mask = rng.random(len(points)) < 0.4
+    order = rng.permutation(len(points))[:300]
+    for index in (mask, order, slice(None), slice(10, 400, 3)):
+        taken = take_points(points, index)
+        assert taken.dtype == POINT_DTYPE
+        assert taken.tobytes() == points[index].tobytes()
+        assert not np.shares_memory(taken, points)
