@@ -1,6 +1,6 @@
 """`decode_packets` on batches of any size and from several threads at once.
 
-The decoder keeps int64 work memory per thread and reuses it up to a size; larger
+The decoder keeps work memory per thread and reuses it up to a size; larger
 batches get their own. Expected values come from decoding one packet at a time: a
 packet's points depend on that packet alone.
 """
@@ -49,10 +49,12 @@ def test_batches_of_any_size_decode_as_their_packets(name):
 
 
 def test_work_memory_is_kept_up_to_its_cap_only():
-    small, smaller = p._int64_work(1000), p._int64_work(10)
+    small, smaller = p._work("test", 1000, np.int64), p._work("test", 10, np.float32)
     assert np.shares_memory(small, smaller)  # the same thread memory, reused
-    beyond = p._int64_work(p._SCRATCH_MAX_INT64 + 1)
-    assert not np.shares_memory(beyond, p._int64_work(10))
+    assert smaller.dtype == np.float32 and len(smaller) == 10
+    assert not np.shares_memory(small, p._work("other", 10, np.int64))  # one buffer a name
+    beyond = p._work("test", p._SCRATCH_MAX_BYTES // 8 + 1, np.int64)
+    assert not np.shares_memory(beyond, p._work("test", 10, np.int64))
 
 
 def test_threads_decoding_at_once_get_their_own_points():
