@@ -49,12 +49,13 @@ def test_batches_of_any_size_decode_as_their_packets(name):
 
 
 def test_work_memory_is_kept_up_to_its_cap_only():
-    small, smaller = p._work("test", 1000, np.int64), p._work("test", 10, np.float32)
+    int64 = np.dtype(np.int64)
+    small, smaller = p._work("test", 1000, int64), p._work("test", 10, int64)
     assert np.shares_memory(small, smaller)  # the same thread memory, reused
-    assert smaller.dtype == np.float32 and len(smaller) == 10
-    assert not np.shares_memory(small, p._work("other", 10, np.int64))  # one buffer a name
-    beyond = p._work("test", p._SCRATCH_MAX_BYTES // 8 + 1, np.int64)
-    assert not np.shares_memory(beyond, p._work("test", 10, np.int64))
+    assert smaller.dtype == int64 and len(smaller) == 10
+    assert not np.shares_memory(small, p._work("other", 10, int64))  # one buffer a name
+    beyond = p._work("test", p._SCRATCH_MAX_BYTES // 8 + 1, int64)
+    assert not np.shares_memory(beyond, p._work("test", 10, int64))
 
 
 def test_threads_decoding_at_once_get_their_own_points():

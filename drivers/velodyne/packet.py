@@ -193,7 +193,7 @@ def _tail_words(records: np.ndarray, distance: np.ndarray, dual: bool, tables: _
     return words
 
 
-class _Scratch:
+class _Scratch(threading.local):
     """A thread's work memory, kept from one decode to the next: a buffer per name.
     A scan's temporaries are large (a dual-return scan's grids hold 58,000 records);
     fresh ones are faulted in page by page, and freed after every scan they often go
@@ -204,27 +204,24 @@ class _Scratch:
         self.buffers: dict[str, np.ndarray] = {}
 
 
-_THREAD = threading.local()  # threads decode at once; calls within one never overlap
+_SCRATCH = _Scratch()  # threads decode at once; calls within one never overlap
 # A thread keeps buffers of at most this many bytes each (an int64 per record of 512
 # packets, about 1.6 MB; a 5 Hz dual-return scan has 302 packets); larger get their own.
 _SCRATCH_MAX_BYTES = 8 * 512 * m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
+_BOOL, _UINT16, _INT64, _FLOAT32 = (np.dtype(t) for t in (bool, np.uint16, np.int64, np.float32))
 
 
-def _work(name: str, count: int, dtype: np.dtype | type) -> np.ndarray:
+def _work(name: str, count: int, dtype: np.dtype) -> np.ndarray:
     """`count` uninitialised items of `dtype` from the thread's buffer `name` when they
-    fit under its cap; every call with that name shares the memory."""
-    dtype = np.dtype(dtype)
-    size = count * dtype.itemsize
-    if size > _SCRATCH_MAX_BYTES:
-        return np.empty(count, dtype=dtype)
-    scratch = getattr(_THREAD, "scratch", None)
-    if scratch is None:
-        scratch = _THREAD.scratch = _Scratch()
-    memory = scratch.buffers.get(name)
-    if memory is None or memory.size < size:  # a quarter to spare: scans differ a little
-        memory = np.empty(min(size + size // 4, _SCRATCH_MAX_BYTES), dtype=np.uint8)
-        scratch.buffers[name] = memory
-    return memory[:size].view(dtype)
+    fit under its cap. Called a dozen times a scan: one dict look-up and a slice."""
+    memory = _SCRATCH.buffers.get(name)
+    if memory is None or memory.dtype is not dtype or len(memory) < count:
+        if count * dtype.itemsize > _SCRATCH_MAX_BYTES:
+            return np.empty(count, dtype=dtype)
+        spare = count // 4  # scans differ by a packet or two
+        memory = np.empty(min(count + spare, _SCRATCH_MAX_BYTES // dtype.itemsize), dtype)
+        _SCRATCH.buffers[name] = memory
+    return memory[:count]
 
 
 def _block_terms(
@@ -289,16 +286,16 @@ def decode_packets(
     dual = mode == m.RETURN_DUAL
     tables = _record_tables(dual, mode == m.RETURN_LAST, optics)
     records = packets["blocks"]["records"]
-    distance = _work("distance", records.size, np.uint16).reshape(records.shape)
+    distance = _work("distance", records.size, _UINT16).reshape(records.shape)
     np.copyto(distance, records["distance"])
     # A bool mask first: flatnonzero on the uint16 distances directly is 4x slower.
-    has_return = _work("mask", distance.size, bool).reshape(distance.shape)
+    has_return = _work("mask", distance.size, _BOOL).reshape(distance.shape)
     np.not_equal(distance, 0, out=has_return)
     index = np.flatnonzero(has_return)
     count = len(index)
     points = np.empty(count, dtype=POINT_DTYPE)
 
-    where = _work("where", count, np.int64)
+    where = _work("where", count, _INT64)
     block_terms = _block_terms(packets, t_packet_ns, dual, tables)
     block = _gather("block", block_terms, np.right_shift(index, _RECORD_SHIFT, out=where), "V16")
     record = np.bitwise_and(index, _RECORD_BITS, out=where)
@@ -308,22 +305,18 @@ def decode_packets(
     tail = _gather("tail_point", _tail_grid(records, distance, dual, tables), index)
     points.view(_TAIL_VIEW)["tail"] = tail
 
-    rng = _work("range", count, np.float32)
+    rng = _work("range", count, _FLOAT32)
     np.multiply(_gather("distance_point", distance, index), np.float32(m.DISTANCE_UNIT_M), out=rng)
-    horizontal = np.multiply(
-        rng, laser["cos_elevation"], out=_work("horizontal", count, np.float32)
-    )
+    horizontal = np.multiply(rng, laser["cos_elevation"], out=_work("horizontal", count, _FLOAT32))
     z = np.multiply(rng, laser["sin_elevation"], out=rng)
     np.add(z, laser["z_m"], out=points["z"])
 
-    centideg = np.multiply(
-        block["rate"], laser["fraction"], out=_work("azimuth", count, np.float32)
-    )
+    centideg = np.multiply(block["rate"], laser["fraction"], out=_work("azimuth", count, _FLOAT32))
     np.add(centideg, block["azimuth"], out=centideg)
     np.subtract(centideg, 36000, out=centideg, where=centideg >= 36000)
     azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=centideg)
     points["azimuth"] = azimuth
-    trig = _work("trig", count, np.float32)
+    trig = _work("trig", count, _FLOAT32)
     np.multiply(horizontal, np.cos(azimuth, out=trig), out=points["x"])
     np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth, out=trig), out=points["y"])
     return points
