@@ -27,6 +27,9 @@ from treetraits.drivers.velodyne.packet import (
 )
 
 _HOUR_US = 3_600_000_000
+_HALF_HOUR_US = _HOUR_US // 2
+_PACKET_SIZE = m.DATA_PACKET_SIZE
+_VLP16 = m.PRODUCT_VLP16
 _FLAG_LO = b"\xff" * m.BLOCKS_PER_PACKET
 _FLAG_HI = b"\xee" * m.BLOCKS_PER_PACKET
 # Last block's azimuth (byte 1102), then ToH, return mode and product (bytes 1200-1205).
@@ -43,12 +46,6 @@ def _firings_in_order(t_packet: np.ndarray) -> bool:
     """True when each single-return packet starts after the last firing of the one
     before: the points' times then never run back and need no clamping."""
     return len(t_packet) < 2 or int((t_packet[1:] - t_packet[:-1]).min()) > _LAST_FIRING_SINGLE_NS
-
-
-def _unwrap(toh_raw: int, last_toh: int) -> int:
-    """ToH wraps every hour; keep it increasing by choosing the hour nearest the last."""
-    step = (toh_raw - last_toh) % _HOUR_US
-    return last_toh + (step - _HOUR_US if step > _HOUR_US // 2 else step)
 
 
 @dataclass
@@ -114,7 +111,7 @@ class ScanBatcher:
         stats = self.stats
         stats.data_packets += 1
         if (
-            len(payload) != m.DATA_PACKET_SIZE
+            len(payload) != _PACKET_SIZE
             or payload[0:1200:100] != _FLAG_LO
             or payload[1:1200:100] != _FLAG_HI
         ):
@@ -124,32 +121,38 @@ class ScanBatcher:
         if mode not in _RETURN_MODES or azimuth > 36000 or toh_raw >= _HOUR_US:
             stats.malformed += 1
             return None
-        if product != m.PRODUCT_VLP16 and not self._supported(product, toh_raw):
+        if product != _VLP16 and not self._supported(product, toh_raw):
             stats.unsupported_model += 1
             return None
 
         last_toh = self._last_toh
-        toh = toh_raw if last_toh is None else _unwrap(toh_raw, last_toh)
+        max_gap = self._max_gap_us
         closed: Scan | None = None
         scan = self._scan
         if scan is not None and (mode != scan.return_mode or product != scan.product):
             closed = self._close(complete=False)  # the sensor was reconfigured
         missing = 0
-        if last_toh is not None:
-            step = toh - last_toh
+        if last_toh is None:
+            toh = toh_raw
+        else:
+            # ToH wraps every hour; keep it increasing: the hour nearest the last.
+            step = (toh_raw - last_toh) % _HOUR_US
+            if step > _HALF_HOUR_US:
+                step -= _HOUR_US
+            toh = last_toh + step
             if step == 0:
                 stats.duplicates += 1
                 return closed
-            if step < 0 and step >= -self._max_gap_us:
+            if step < 0 and step >= -max_gap:
                 self._insert_late(payload, toh)
                 return closed
-            if abs(step) > self._max_gap_us:
+            if abs(step) > max_gap:
                 stats.time_jumps += 1
                 closed = self._close(complete=False) or closed
             elif step > _LOSS_STEP_US[mode]:
                 missing = round(step * 1000 / m.packet_period_ns(mode)) - 1
         scan = self._scan
-        if scan is not None and toh - scan.toh[0] > self._max_gap_us:
+        if scan is not None and toh - scan.toh[0] > max_gap:
             closed = self._close(complete=False) or closed  # no cut in sight: not spinning
             scan = None
         if scan is None:
