@@ -59,7 +59,9 @@ _BLOCK_TERMS = np.dtype([("azimuth", "<f4"), ("rate", "<f4"), ("t_ns", "<i8")])
 _LASER_TERMS = np.dtype(
     [("fraction", "<f4"), ("cos_elevation", "<f4"), ("sin_elevation", "<f4"), ("z_m", "<f4")]
 )
-assert _BLOCK_TERMS.itemsize == _LASER_TERMS.itemsize == 16
+# A structured `take` is several times slower than one of plain items of the same size.
+_ITEM16 = np.dtype("V16")
+assert _BLOCK_TERMS.itemsize == _LASER_TERMS.itemsize == _ITEM16.itemsize
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,6 +75,7 @@ class _RecordTables:
     # (32,) `_LASER_TERMS`: that time in firing blocks (to interpolate the azimuth), the
     # elevation's cosine and sine, the vertical offset
     laser: np.ndarray
+    laser_items: np.ndarray  # `laser` seen as plain 16-byte items, to gather
     tail: np.ndarray  # (12, 32) "<u4": ring and return_type in their bytes of the tail word
 
 
@@ -97,6 +100,7 @@ def _record_tables(dual: bool, last_return: bool, optics: m.LaserModel) -> _Reco
         block_t_offset_ns=(firing_block[:, 0] * m.BLOCK_NS).astype(np.int64),
         t_in_block_ns=_T_IN_BLOCK_NS.astype(np.int64),
         laser=laser,
+        laser_items=laser.view(_ITEM16),
         tail=np.broadcast_to(tail, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK)).astype("<u4"),
     )
 
@@ -181,18 +185,6 @@ def _rotation_rate(azimuth: np.ndarray, dual: bool) -> np.ndarray:
     return (sweep / (firings - 1)).astype(np.float32)
 
 
-def _tail_words(records: np.ndarray, distance: np.ndarray, dual: bool, tables: _RecordTables):
-    """(packets, 12, 32) tail words: reflectivity, ring, return type and the duplicate flag."""
-    words = np.empty(distance.shape, dtype=tables.tail.dtype)
-    words[...] = tables.tail
-    tail_bytes = words.view(np.uint8).reshape(*distance.shape, 4)
-    tail_bytes[..., 0] = records["reflectivity"]
-    if dual:
-        # A single echo is reported by both blocks of the pair: flag the repeat.
-        np.equal(distance[:, 1::2], distance[:, 0::2], out=tail_bytes[:, 1::2, :, 3].view(bool))
-    return words
-
-
 class _Scratch(threading.local):
     """A thread's work memory, kept from one decode to the next: a buffer per name.
     A scan's temporaries are large (a dual-return scan's grids hold 58,000 records);
@@ -209,6 +201,7 @@ _SCRATCH = _Scratch()  # threads decode at once; calls within one never overlap
 # packets, about 1.6 MB; a 5 Hz dual-return scan has 302 packets); larger get their own.
 _SCRATCH_MAX_BYTES = 8 * 512 * m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
 _BOOL, _UINT16, _INT64, _FLOAT32 = (np.dtype(t) for t in (bool, np.uint16, np.int64, np.float32))
+_WORD = np.dtype("<u4")
 
 
 def _work(name: str, count: int, dtype: np.dtype) -> np.ndarray:
@@ -227,23 +220,26 @@ def _work(name: str, count: int, dtype: np.dtype) -> np.ndarray:
 def _block_terms(
     packets: np.ndarray, t_packet_ns: np.ndarray, dual: bool, tables: _RecordTables
 ) -> np.ndarray:
-    """(packets x 12,) `_BLOCK_TERMS`: each block's azimuth (centidegrees), its packet's
-    rotation rate and the block's first firing time."""
+    """(packets x 12,) `_BLOCK_TERMS` as plain 16-byte items: each block's azimuth
+    (centidegrees), its packet's rotation rate and the block's first firing time."""
     azimuth = packets["blocks"]["azimuth"]
-    terms = _work("block_terms", azimuth.size, _BLOCK_TERMS).reshape(azimuth.shape)
+    items = _work("block_terms", azimuth.size, _ITEM16)
+    terms = items.view(_BLOCK_TERMS).reshape(azimuth.shape)
     terms["azimuth"] = azimuth  # uint16 to float32 is exact
     terms["rate"] = _rotation_rate(azimuth, dual)[:, None]
     t_packet = np.asarray(t_packet_ns, dtype=np.int64)[:, None]
     np.add(t_packet, tables.block_t_offset_ns, out=terms["t_ns"])
-    return terms.reshape(-1)
+    return items
 
 
 def _tail_grid(
     records: np.ndarray, distance: np.ndarray, dual: bool, tables: _RecordTables
 ) -> np.ndarray:
-    """(packets, 12, 32) tail words: reflectivity, ring, return type and the duplicate flag."""
-    words = _work("tail", distance.size, tables.tail.dtype).reshape(distance.shape)
-    words[...] = tables.tail
+    """Tail words, flat, one per record: reflectivity, ring, return type and the
+    duplicate flag. `distance` is the (packets, 12, 32) grid."""
+    words = _work("tail", distance.size, _WORD)
+    grid = words.reshape(distance.shape)
+    grid[...] = tables.tail
     tail_bytes = words.view(np.uint8).reshape(*distance.shape, 4)
     tail_bytes[..., 0] = records["reflectivity"]
     if dual:
@@ -252,16 +248,10 @@ def _tail_grid(
     return words
 
 
-def _gather(name: str, grid: np.ndarray, index: np.ndarray, view: str | None = None):
-    """`grid.reshape(-1)[index]` into the thread's buffer `name`; `view`: gather the
-    items as that plain type (a structured `take` is several times slower)."""
-    out = _work(name, len(index), grid.dtype)
-    flat = grid.reshape(-1)
-    if view is not None:
-        flat, out_items = flat.view(view), out.view(view)
-    else:
-        out_items = out
-    np.take(flat, index, out=out_items, mode="clip")  # indices in range: no checking copy
+def _gather(name: str, items: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """`items[index]` (`items` flat) into the thread's buffer `name`."""
+    out = _work(name, len(index), items.dtype)
+    np.take(items, index, out=out, mode="clip")  # indices in range: no checking copy
     return out
 
 
@@ -286,7 +276,8 @@ def decode_packets(
     dual = mode == m.RETURN_DUAL
     tables = _record_tables(dual, mode == m.RETURN_LAST, optics)
     records = packets["blocks"]["records"]
-    distance = _work("distance", records.size, _UINT16).reshape(records.shape)
+    distances = _work("distance", records.size, _UINT16)
+    distance = distances.reshape(records.shape)
     np.copyto(distance, records["distance"])
     # A bool mask first: flatnonzero on the uint16 distances directly is 4x slower.
     has_return = _work("mask", distance.size, _BOOL).reshape(distance.shape)
@@ -297,16 +288,17 @@ def decode_packets(
 
     where = _work("where", count, _INT64)
     block_terms = _block_terms(packets, t_packet_ns, dual, tables)
-    block = _gather("block", block_terms, np.right_shift(index, _RECORD_SHIFT, out=where), "V16")
+    block_of_point = np.right_shift(index, _RECORD_SHIFT, out=where)
+    block = _gather("block", block_terms, block_of_point).view(_BLOCK_TERMS)
     record = np.bitwise_and(index, _RECORD_BITS, out=where)
-    laser = _gather("laser", tables.laser, record, "V16")
+    laser = _gather("laser", tables.laser_items, record).view(_LASER_TERMS)
     t = _gather("t", tables.t_in_block_ns, record)
     np.add(block["t_ns"], t, out=points["t"])
     tail = _gather("tail_point", _tail_grid(records, distance, dual, tables), index)
     points.view(_TAIL_VIEW)["tail"] = tail
 
     rng = _work("range", count, _FLOAT32)
-    np.multiply(_gather("distance_point", distance, index), np.float32(m.DISTANCE_UNIT_M), out=rng)
+    np.multiply(_gather("distance_point", distances, index), np.float32(m.DISTANCE_UNIT_M), out=rng)
     horizontal = np.multiply(rng, laser["cos_elevation"], out=_work("horizontal", count, _FLOAT32))
     z = np.multiply(rng, laser["sin_elevation"], out=rng)
     np.add(z, laser["z_m"], out=points["z"])
