@@ -69,3 +69,12 @@ def test_threads_decoding_at_once_get_their_own_points():
     with ThreadPoolExecutor(max_workers=4) as pool:
         results = list(pool.map(decode, range(40)))
     assert results == [expected[job % 2] for job in range(40)]
+
+
+@pytest.mark.parametrize("name", CAPTURES)
+def test_duplicates_are_counted_as_flagged(name):
+    packets, t_packet = real_packets(name)
+    points, duplicates = p.decode_counting_duplicates(packets, t_packet, m.VLP16)
+    assert points.tobytes() == p.decode_packets(packets, t_packet, m.VLP16).tobytes()
+    assert duplicates == np.count_nonzero(points["duplicate"])
+    assert (duplicates > 0) == (packets["return_mode"][0] == m.RETURN_DUAL)

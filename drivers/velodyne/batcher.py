@@ -21,7 +21,7 @@ from treetraits.drivers.records import Scan
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne.packet import (
     azimuths_in_range,
-    decode_packets,
+    decode_counting_duplicates,
     resolve_hour_one,
     view_packets,
 )
@@ -242,14 +242,16 @@ class ScanBatcher:
             return None
         # The hour comes from the host clock once per scan; within the scan the device
         # clock alone orders the packets, so a host clock step cannot bend a scan's times.
-        toh = np.asarray(scan.toh, dtype=np.int64)
         t_first = resolve_hour_one(scan.toh[0] % _HOUR_US, scan.t_host_first)
-        t_packet = t_first + (toh - toh[0]) * 1000
+        t_packet = np.asarray(scan.toh, dtype=np.int64)
+        t_packet -= scan.toh[0]
+        t_packet *= 1000
+        t_packet += t_first
         if malformed:  # rare: skip the costly structured copy otherwise
             self.stats.malformed += malformed
             packets, t_packet = packets[ok], t_packet[ok]
         optics = self._optics(scan.product)
-        points = decode_packets(packets, t_packet, optics)
+        points, duplicates = decode_counting_duplicates(packets, t_packet, optics)
         mode_name = m.RETURN_MODE_NAMES[scan.return_mode]
         dual = scan.return_mode == m.RETURN_DUAL
         if not dual and len(points) and not _firings_in_order(t_packet):
@@ -257,8 +259,6 @@ class ScanBatcher:
             # timestamp: a VLP-16 sends one every 1.33 ms) would start its firings before
             # the last ones ended; the scan's times are held from running back.
             np.maximum.accumulate(points["t"], out=points["t"])
-        # Only dual return repeats an echo; single-return points are never flagged.
-        duplicates = int(np.count_nonzero(points["duplicate"])) if dual else 0
         self.stats.scans += 1
         self.stats.complete_scans += int(complete)
         self.stats.points += len(points) - duplicates

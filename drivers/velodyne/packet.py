@@ -264,6 +264,15 @@ def decode_packets(
     `valid_packets`; `t_packet_ns` is each packet's absolute ToH (see `resolve_hour`).
     Records with distance 0 (no return) are skipped. Points come in packet, block,
     firing sequence, laser order.
+    """
+    return decode_counting_duplicates(packets, t_packet_ns, optics)[0]
+
+
+def decode_counting_duplicates(
+    packets: np.ndarray, t_packet_ns: np.ndarray, optics: m.LaserModel
+) -> tuple[np.ndarray, int]:
+    """`decode_packets`, and how many of the points are flagged `duplicate` (counted on
+    the decoder's own contiguous copy: the points' flags are 28 bytes apart).
 
     The records with a return are found first; each point then gathers what it needs
     from its block and its record j (two 16-byte gathers) and from the distance and
@@ -271,7 +280,7 @@ def decode_packets(
     in the thread's work memory.
     """
     if len(packets) == 0:
-        return np.empty(0, dtype=POINT_DTYPE)
+        return np.empty(0, dtype=POINT_DTYPE), 0
     mode = int(packets["return_mode"][0])
     dual = mode == m.RETURN_DUAL
     tables = _record_tables(dual, mode == m.RETURN_LAST, optics)
@@ -296,6 +305,10 @@ def decode_packets(
     np.add(block["t_ns"], t, out=points["t"])
     tail = _gather("tail_point", _tail_grid(records, distance, dual, tables), index)
     points.view(_TAIL_VIEW)["tail"] = tail
+    duplicates = 0
+    if dual:  # only dual return repeats an echo; the flag is the word's top byte
+        flagged = np.greater_equal(tail, 1 << 24, out=_work("flagged", count, _BOOL))
+        duplicates = int(np.count_nonzero(flagged))
 
     rng = _work("range", count, _FLOAT32)
     np.multiply(_gather("distance_point", distances, index), np.float32(m.DISTANCE_UNIT_M), out=rng)
@@ -311,4 +324,4 @@ def decode_packets(
     trig = _work("trig", count, _FLOAT32)
     np.multiply(horizontal, np.cos(azimuth, out=trig), out=points["x"])
     np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth, out=trig), out=points["y"])
-    return points
+    return points, duplicates
