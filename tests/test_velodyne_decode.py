@@ -1,6 +1,6 @@
 """`decode_packets` on batches of any size and from several threads at once.
 
-The decoder keeps int64 work memory per thread and reuses it up to a size; larger
+The decoder keeps work memory per thread and reuses it up to a size; larger
 batches get their own. Expected values come from decoding one packet at a time: a
 packet's points depend on that packet alone.
 """
@@ -49,10 +49,13 @@ def test_batches_of_any_size_decode_as_their_packets(name):
 
 
 def test_work_memory_is_kept_up_to_its_cap_only():
-    small, smaller = p._int64_work(1000), p._int64_work(10)
+    int64 = np.dtype(np.int64)
+    small, smaller = p._work("test", 1000, int64), p._work("test", 10, int64)
     assert np.shares_memory(small, smaller)  # the same thread memory, reused
-    beyond = p._int64_work(p._SCRATCH_MAX_INT64 + 1)
-    assert not np.shares_memory(beyond, p._int64_work(10))
+    assert smaller.dtype == int64 and len(smaller) == 10
+    assert not np.shares_memory(small, p._work("other", 10, int64))  # one buffer a name
+    beyond = p._work("test", p._SCRATCH_MAX_BYTES // 8 + 1, int64)
+    assert not np.shares_memory(beyond, p._work("test", 10, int64))
 
 
 def test_threads_decoding_at_once_get_their_own_points():
@@ -66,3 +69,12 @@ def test_threads_decoding_at_once_get_their_own_points():
     with ThreadPoolExecutor(max_workers=4) as pool:
         results = list(pool.map(decode, range(40)))
     assert results == [expected[job % 2] for job in range(40)]
+
+
+@pytest.mark.parametrize("name", CAPTURES)
+def test_duplicates_are_counted_as_flagged(name):
+    packets, t_packet = real_packets(name)
+    points, duplicates = p.decode_counting_duplicates(packets, t_packet, m.VLP16)
+    assert points.tobytes() == p.decode_packets(packets, t_packet, m.VLP16).tobytes()
+    assert duplicates == np.count_nonzero(points["duplicate"])
+    assert (duplicates > 0) == (packets["return_mode"][0] == m.RETURN_DUAL)

@@ -21,12 +21,15 @@ from treetraits.drivers.records import Scan
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne.packet import (
     azimuths_in_range,
-    decode_packets,
+    decode_counting_duplicates,
     resolve_hour_one,
     view_packets,
 )
 
 _HOUR_US = 3_600_000_000
+_HALF_HOUR_US = _HOUR_US // 2
+_PACKET_SIZE = m.DATA_PACKET_SIZE
+_VLP16 = m.PRODUCT_VLP16
 _FLAG_LO = b"\xff" * m.BLOCKS_PER_PACKET
 _FLAG_HI = b"\xee" * m.BLOCKS_PER_PACKET
 # Last block's azimuth (byte 1102), then ToH, return mode and product (bytes 1200-1205).
@@ -43,12 +46,6 @@ def _firings_in_order(t_packet: np.ndarray) -> bool:
     """True when each single-return packet starts after the last firing of the one
     before: the points' times then never run back and need no clamping."""
     return len(t_packet) < 2 or int((t_packet[1:] - t_packet[:-1]).min()) > _LAST_FIRING_SINGLE_NS
-
-
-def _unwrap(toh_raw: int, last_toh: int) -> int:
-    """ToH wraps every hour; keep it increasing by choosing the hour nearest the last."""
-    step = (toh_raw - last_toh) % _HOUR_US
-    return last_toh + (step - _HOUR_US if step > _HOUR_US // 2 else step)
 
 
 @dataclass
@@ -114,7 +111,7 @@ class ScanBatcher:
         stats = self.stats
         stats.data_packets += 1
         if (
-            len(payload) != m.DATA_PACKET_SIZE
+            len(payload) != _PACKET_SIZE
             or payload[0:1200:100] != _FLAG_LO
             or payload[1:1200:100] != _FLAG_HI
         ):
@@ -124,32 +121,38 @@ class ScanBatcher:
         if mode not in _RETURN_MODES or azimuth > 36000 or toh_raw >= _HOUR_US:
             stats.malformed += 1
             return None
-        if product != m.PRODUCT_VLP16 and not self._supported(product, toh_raw):
+        if product != _VLP16 and not self._supported(product, toh_raw):
             stats.unsupported_model += 1
             return None
 
         last_toh = self._last_toh
-        toh = toh_raw if last_toh is None else _unwrap(toh_raw, last_toh)
+        max_gap = self._max_gap_us
         closed: Scan | None = None
         scan = self._scan
         if scan is not None and (mode != scan.return_mode or product != scan.product):
             closed = self._close(complete=False)  # the sensor was reconfigured
         missing = 0
-        if last_toh is not None:
-            step = toh - last_toh
+        if last_toh is None:
+            toh = toh_raw
+        else:
+            # ToH wraps every hour; keep it increasing: the hour nearest the last.
+            step = (toh_raw - last_toh) % _HOUR_US
+            if step > _HALF_HOUR_US:
+                step -= _HOUR_US
+            toh = last_toh + step
             if step == 0:
                 stats.duplicates += 1
                 return closed
-            if step < 0 and step >= -self._max_gap_us:
+            if step < 0 and step >= -max_gap:
                 self._insert_late(payload, toh)
                 return closed
-            if abs(step) > self._max_gap_us:
+            if abs(step) > max_gap:
                 stats.time_jumps += 1
                 closed = self._close(complete=False) or closed
             elif step > _LOSS_STEP_US[mode]:
                 missing = round(step * 1000 / m.packet_period_ns(mode)) - 1
         scan = self._scan
-        if scan is not None and toh - scan.toh[0] > self._max_gap_us:
+        if scan is not None and toh - scan.toh[0] > max_gap:
             closed = self._close(complete=False) or closed  # no cut in sight: not spinning
             scan = None
         if scan is None:
@@ -239,14 +242,16 @@ class ScanBatcher:
             return None
         # The hour comes from the host clock once per scan; within the scan the device
         # clock alone orders the packets, so a host clock step cannot bend a scan's times.
-        toh = np.asarray(scan.toh, dtype=np.int64)
         t_first = resolve_hour_one(scan.toh[0] % _HOUR_US, scan.t_host_first)
-        t_packet = t_first + (toh - toh[0]) * 1000
+        t_packet = np.asarray(scan.toh, dtype=np.int64)
+        t_packet -= scan.toh[0]
+        t_packet *= 1000
+        t_packet += t_first
         if malformed:  # rare: skip the costly structured copy otherwise
             self.stats.malformed += malformed
             packets, t_packet = packets[ok], t_packet[ok]
         optics = self._optics(scan.product)
-        points = decode_packets(packets, t_packet, optics)
+        points, duplicates = decode_counting_duplicates(packets, t_packet, optics)
         mode_name = m.RETURN_MODE_NAMES[scan.return_mode]
         dual = scan.return_mode == m.RETURN_DUAL
         if not dual and len(points) and not _firings_in_order(t_packet):
@@ -254,8 +259,6 @@ class ScanBatcher:
             # timestamp: a VLP-16 sends one every 1.33 ms) would start its firings before
             # the last ones ended; the scan's times are held from running back.
             np.maximum.accumulate(points["t"], out=points["t"])
-        # Only dual return repeats an echo; single-return points are never flagged.
-        duplicates = int(np.count_nonzero(points["duplicate"])) if dual else 0
         self.stats.scans += 1
         self.stats.complete_scans += int(complete)
         self.stats.points += len(points) - duplicates

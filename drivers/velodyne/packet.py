@@ -2,9 +2,9 @@
 
 A batch of N packets is viewed in place as a structured array (`PACKET_DTYPE`), checked,
 and turned into points by NumPy, each field written once: no Python loop per packet or
-per point. The points depend on the packets alone; each thread keeps some int64 work
-memory from one call to the next (`_int64_work`). Conventions (ROS `lidar` frame,
-vertical offset applied, per-point time) are documented in `docs/lidar.md`.
+per point. The points depend on the packets alone; each thread keeps its work memory
+from one call to the next (`_work`). Conventions (ROS `lidar` frame, vertical offset
+applied, per-point time) are documented in `docs/lidar.md`.
 """
 
 from __future__ import annotations
@@ -44,11 +44,6 @@ _T_IN_BLOCK_NS = (_RECORD // m.LASERS) * m.SEQUENCE_NS + _LASER_OF_RECORD * m.LA
 _RECORD_BITS = m.RECORDS_PER_BLOCK - 1
 _RECORD_SHIFT = _RECORD_BITS.bit_length()  # index >> 5: the block, counted over the batch
 assert m.RECORDS_PER_BLOCK & _RECORD_BITS == 0
-# With fewer records than this holding a return (a dual-return scan has about half), a
-# point's azimuth and time are cheaper looked up from its block and record than computed
-# for every record and gathered (bench/decode.py: dual return faster, 20 Hz strongest,
-# 96 % of records with a return, slower).
-_PER_POINT_BELOW = 0.75
 # The four one-byte fields that end a point (intensity, ring, return_type, duplicate),
 # seen as one little-endian word: one strided write per point instead of four.
 _TAIL_VIEW = np.dtype({"names": ["tail"], "formats": ["<u4"], "offsets": [24], "itemsize": 28})
@@ -58,21 +53,29 @@ assert [POINT_DTYPE.fields[f][1] for f in ("intensity", "ring", "return_type", "
     26,
     27,
 ] and POINT_DTYPE.itemsize == _TAIL_VIEW.itemsize
+# What a point takes from its block and from its record j, each gathered in one `take` of
+# 16-byte items (a gather costs about the same for 4- or 16-byte items).
+_BLOCK_TERMS = np.dtype([("azimuth", "<f4"), ("rate", "<f4"), ("t_ns", "<i8")])
+_LASER_TERMS = np.dtype(
+    [("fraction", "<f4"), ("cos_elevation", "<f4"), ("sin_elevation", "<f4"), ("z_m", "<f4")]
+)
+# A structured `take` is several times slower than one of plain items of the same size.
+_ITEM16 = np.dtype("V16")
+assert _BLOCK_TERMS.itemsize == _LASER_TERMS.itemsize == _ITEM16.itemsize
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _RecordTables:
     """What a record's place in the packet says about its point, whatever the packet
-    holds. Laser terms depend on the record j alone: (32,) tables, looked up per point.
-    Block terms are (12, 32) grids that broadcast over a batch of packets."""
+    holds: terms of the record j alone, looked up per point, and of the block, which
+    broadcast over a batch of packets."""
 
-    t_offset_ns: np.ndarray  # (12, 32): firing time after the packet's ToH
     block_t_offset_ns: np.ndarray  # (12,): the block's first firing after the packet's ToH
-    t_in_block_ns: np.ndarray  # (32,): firing time after the block's first firing
-    block_fraction: np.ndarray  # (32,): that time in firing blocks, to interpolate the azimuth
-    cos_elevation: np.ndarray  # (32,)
-    sin_elevation: np.ndarray  # (32,)
-    vertical_offset_m: np.ndarray  # (32,)
+    t_in_block_ns: np.ndarray  # (32,) int64: firing time after the block's first firing
+    # (32,) `_LASER_TERMS`: that time in firing blocks (to interpolate the azimuth), the
+    # elevation's cosine and sine, the vertical offset
+    laser: np.ndarray
+    laser_items: np.ndarray  # `laser` seen as plain 16-byte items, to gather
     tail: np.ndarray  # (12, 32) "<u4": ring and return_type in their bytes of the tail word
 
 
@@ -88,16 +91,16 @@ def _record_tables(dual: bool, last_return: bool, optics: m.LaserModel) -> _Reco
         return_type = m.RETURN_TYPE_LAST if last_return else m.RETURN_TYPE_STRONGEST
     ring = optics.ring[_LASER_OF_RECORD].astype(np.uint32)
     tail = (ring << 8) | (np.asarray(return_type, dtype=np.uint32) << 16)
+    laser = np.empty(m.RECORDS_PER_BLOCK, dtype=_LASER_TERMS)
+    laser["fraction"] = _T_IN_BLOCK_NS / m.BLOCK_NS
+    laser["cos_elevation"] = np.cos(elevation)
+    laser["sin_elevation"] = np.sin(elevation)
+    laser["z_m"] = (np.asarray(optics.vertical_offset_mm) / 1000)[_LASER_OF_RECORD]
     return _RecordTables(
-        t_offset_ns=(firing_block * m.BLOCK_NS + _T_IN_BLOCK_NS).astype(np.int64),
         block_t_offset_ns=(firing_block[:, 0] * m.BLOCK_NS).astype(np.int64),
         t_in_block_ns=_T_IN_BLOCK_NS.astype(np.int64),
-        block_fraction=(_T_IN_BLOCK_NS / m.BLOCK_NS).astype(np.float32),
-        cos_elevation=np.cos(elevation).astype(np.float32),
-        sin_elevation=np.sin(elevation).astype(np.float32),
-        vertical_offset_m=(np.asarray(optics.vertical_offset_mm) / 1000)[_LASER_OF_RECORD].astype(
-            np.float32
-        ),
+        laser=laser,
+        laser_items=laser.view(_ITEM16),
         tail=np.broadcast_to(tail, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK)).astype("<u4"),
     )
 
@@ -182,10 +185,61 @@ def _rotation_rate(azimuth: np.ndarray, dual: bool) -> np.ndarray:
     return (sweep / (firings - 1)).astype(np.float32)
 
 
-def _tail_words(records: np.ndarray, distance: np.ndarray, dual: bool, tables: _RecordTables):
-    """(packets, 12, 32) tail words: reflectivity, ring, return type and the duplicate flag."""
-    words = np.empty(distance.shape, dtype=tables.tail.dtype)
-    words[...] = tables.tail
+class _Scratch(threading.local):
+    """A thread's work memory, kept from one decode to the next: a buffer per name.
+    A scan's temporaries are large (a dual-return scan's grids hold 58,000 records);
+    fresh ones are faulted in page by page, and freed after every scan they often go
+    back to the system to be faulted in again (bench/decode.py, dual return: about 56
+    page faults a scan before every temporary had its buffer)."""
+
+    def __init__(self) -> None:
+        self.buffers: dict[str, np.ndarray] = {}
+
+
+_SCRATCH = _Scratch()  # threads decode at once; calls within one never overlap
+# A thread keeps buffers of at most this many bytes each (an int64 per record of 512
+# packets, about 1.6 MB; a 5 Hz dual-return scan has 302 packets); larger get their own.
+_SCRATCH_MAX_BYTES = 8 * 512 * m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
+_BOOL, _UINT16, _INT64, _FLOAT32 = (np.dtype(t) for t in (bool, np.uint16, np.int64, np.float32))
+_WORD = np.dtype("<u4")
+
+
+def _work(name: str, count: int, dtype: np.dtype) -> np.ndarray:
+    """`count` uninitialised items of `dtype` from the thread's buffer `name` when they
+    fit under its cap. Called a dozen times a scan: one dict look-up and a slice."""
+    memory = _SCRATCH.buffers.get(name)
+    if memory is None or memory.dtype is not dtype or len(memory) < count:
+        if count * dtype.itemsize > _SCRATCH_MAX_BYTES:
+            return np.empty(count, dtype=dtype)
+        spare = count // 4  # scans differ by a packet or two
+        memory = np.empty(min(count + spare, _SCRATCH_MAX_BYTES // dtype.itemsize), dtype)
+        _SCRATCH.buffers[name] = memory
+    return memory[:count]
+
+
+def _block_terms(
+    packets: np.ndarray, t_packet_ns: np.ndarray, dual: bool, tables: _RecordTables
+) -> np.ndarray:
+    """(packets x 12,) `_BLOCK_TERMS` as plain 16-byte items: each block's azimuth
+    (centidegrees), its packet's rotation rate and the block's first firing time."""
+    azimuth = packets["blocks"]["azimuth"]
+    items = _work("block_terms", azimuth.size, _ITEM16)
+    terms = items.view(_BLOCK_TERMS).reshape(azimuth.shape)
+    terms["azimuth"] = azimuth  # uint16 to float32 is exact
+    terms["rate"] = _rotation_rate(azimuth, dual)[:, None]
+    t_packet = np.asarray(t_packet_ns, dtype=np.int64)[:, None]
+    np.add(t_packet, tables.block_t_offset_ns, out=terms["t_ns"])
+    return items
+
+
+def _tail_grid(
+    records: np.ndarray, distance: np.ndarray, dual: bool, tables: _RecordTables
+) -> np.ndarray:
+    """Tail words, flat, one per record: reflectivity, ring, return type and the
+    duplicate flag. `distance` is the (packets, 12, 32) grid."""
+    words = _work("tail", distance.size, _WORD)
+    grid = words.reshape(distance.shape)
+    grid[...] = tables.tail
     tail_bytes = words.view(np.uint8).reshape(*distance.shape, 4)
     tail_bytes[..., 0] = records["reflectivity"]
     if dual:
@@ -194,76 +248,11 @@ def _tail_words(records: np.ndarray, distance: np.ndarray, dual: bool, tables: _
     return words
 
 
-class _IntScratch:
-    """A thread's int64 work memory, kept from one decode to the next. A scan's int64
-    temporaries are its largest; fresh ones are faulted in page by page, and freed
-    after every scan they often go back to the system to be faulted in again
-    (bench/decode.py, dual return: about 1.5 us of 6.5 per packet)."""
-
-    def __init__(self) -> None:
-        self.memory = np.empty(0, dtype=np.int64)
-
-
-_THREAD = threading.local()  # threads decode at once; calls within one never overlap
-# A thread keeps at most this many int64 (3 per record of 512 packets, about 5 MB; a
-# 5 Hz dual-return scan has 302 packets); a batch needing more gets its own.
-_SCRATCH_MAX_INT64 = 3 * 512 * m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
-
-
-def _int64_work(count: int) -> np.ndarray:
-    """`count` uninitialised int64, from the thread's kept memory when it is small enough."""
-    if count > _SCRATCH_MAX_INT64:
-        return np.empty(count, dtype=np.int64)
-    scratch = getattr(_THREAD, "scratch", None)
-    if scratch is None:
-        scratch = _THREAD.scratch = _IntScratch()
-    if scratch.memory.size < count:  # a quarter to spare: scans differ by a packet or two
-        scratch.memory = np.empty(min(count + count // 4, _SCRATCH_MAX_INT64), np.int64)
-    return scratch.memory[:count]
-
-
-def _from_grids(
-    packets: np.ndarray,
-    t_packet_ns: np.ndarray,
-    index: np.ndarray,
-    dual: bool,
-    tables: _RecordTables,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each point's azimuth (centidegrees, not yet wrapped at 36000) and firing time,
-    computed for every record on (packets, 12, 32) grids and gathered at `index`."""
-    azimuth = packets["blocks"]["azimuth"]
-    rate = _rotation_rate(azimuth, dual)
-    block = azimuth.astype(np.float32)  # exact; spares a per-record cast below
-    centideg = block[:, :, None] + (rate[:, None] * tables.block_fraction)[:, None]
-    work = _int64_work(centideg.size + len(index))
-    t_grid, t = work[: centideg.size], work[centideg.size :]
-    t_packet = np.asarray(t_packet_ns, dtype=np.int64)[:, None, None]
-    np.add(t_packet, tables.t_offset_ns, out=t_grid.reshape(centideg.shape))
-    np.take(t_grid, index, out=t, mode="clip")  # the indices are in range: no checking copy
-    return centideg.reshape(-1).take(index), t
-
-
-def _per_point(
-    packets: np.ndarray,
-    t_packet_ns: np.ndarray,
-    index: np.ndarray,
-    record: np.ndarray,
-    dual: bool,
-    tables: _RecordTables,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each point's azimuth (centidegrees, not yet wrapped at 36000) and firing time,
-    from its block's azimuth, rate and first firing and its record's share of them."""
-    azimuth = packets["blocks"]["azimuth"]
-    rate = np.repeat(_rotation_rate(azimuth, dual), m.BLOCKS_PER_PACKET)
-    t_block = np.asarray(t_packet_ns, dtype=np.int64)[:, None] + tables.block_t_offset_ns
-    block, t, t_since = _int64_work(3 * len(index)).reshape(3, len(index))
-    np.right_shift(index, _RECORD_SHIFT, out=block)
-    centideg = rate.take(block)
-    centideg *= tables.block_fraction.take(record)
-    centideg += azimuth.astype(np.float32).reshape(-1).take(block)  # u2 to f32 is exact
-    np.take(t_block.reshape(-1), block, out=t, mode="clip")
-    np.add(t, np.take(tables.t_in_block_ns, record, out=t_since, mode="clip"), out=t)
-    return centideg, t
+def _gather(name: str, items: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """`items[index]` (`items` flat) into the thread's buffer `name`."""
+    out = _work(name, len(index), items.dtype)
+    np.take(items, index, out=out, mode="clip")  # indices in range: no checking copy
+    return out
 
 
 def decode_packets(
@@ -275,37 +264,64 @@ def decode_packets(
     `valid_packets`; `t_packet_ns` is each packet's absolute ToH (see `resolve_hour`).
     Records with distance 0 (no return) are skipped. Points come in packet, block,
     firing sequence, laser order.
+    """
+    return decode_counting_duplicates(packets, t_packet_ns, optics)[0]
 
-    The records with a return are found first; the azimuth and time are gathered from
-    grids over every record or, when few records hold a return, looked up per point; the
-    rest is per point; each field is written once into the output.
+
+def decode_counting_duplicates(
+    packets: np.ndarray, t_packet_ns: np.ndarray, optics: m.LaserModel
+) -> tuple[np.ndarray, int]:
+    """`decode_packets`, and how many of the points are flagged `duplicate` (counted on
+    the decoder's own contiguous copy: the points' flags are 28 bytes apart).
+
+    The records with a return are found first; each point then gathers what it needs
+    from its block and its record j (two 16-byte gathers) and from the distance and
+    tail grids, and each field is written once into the output. The temporaries live
+    in the thread's work memory.
     """
     if len(packets) == 0:
-        return np.empty(0, dtype=POINT_DTYPE)
+        return np.empty(0, dtype=POINT_DTYPE), 0
     mode = int(packets["return_mode"][0])
     dual = mode == m.RETURN_DUAL
     tables = _record_tables(dual, mode == m.RETURN_LAST, optics)
-    blocks = packets["blocks"]
-    records = blocks["records"]
-    distance = np.ascontiguousarray(records["distance"])
-    index = np.flatnonzero(distance != 0)
-    record = index & _RECORD_BITS
-    points = np.empty(len(index), dtype=POINT_DTYPE)
+    records = packets["blocks"]["records"]
+    distances = _work("distance", records.size, _UINT16)
+    distance = distances.reshape(records.shape)
+    np.copyto(distance, records["distance"])
+    # A bool mask first: flatnonzero on the uint16 distances directly is 4x slower.
+    has_return = _work("mask", distance.size, _BOOL).reshape(distance.shape)
+    np.not_equal(distance, 0, out=has_return)
+    index = np.flatnonzero(has_return)
+    count = len(index)
+    points = np.empty(count, dtype=POINT_DTYPE)
 
-    rng = distance.reshape(-1).take(index) * np.float32(m.DISTANCE_UNIT_M)
-    if len(index) < _PER_POINT_BELOW * distance.size:
-        centideg, t = _per_point(packets, t_packet_ns, index, record, dual, tables)
-    else:
-        centideg, t = _from_grids(packets, t_packet_ns, index, dual, tables)
-    points["t"] = t
+    where = _work("where", count, _INT64)
+    block_terms = _block_terms(packets, t_packet_ns, dual, tables)
+    block_of_point = np.right_shift(index, _RECORD_SHIFT, out=where)
+    block = _gather("block", block_terms, block_of_point).view(_BLOCK_TERMS)
+    record = np.bitwise_and(index, _RECORD_BITS, out=where)
+    laser = _gather("laser", tables.laser_items, record).view(_LASER_TERMS)
+    t = _gather("t", tables.t_in_block_ns, record)
+    np.add(block["t_ns"], t, out=points["t"])
+    tail = _gather("tail_point", _tail_grid(records, distance, dual, tables), index)
+    points.view(_TAIL_VIEW)["tail"] = tail
+    duplicates = 0
+    if dual:  # only dual return repeats an echo; the flag is the word's top byte
+        flagged = np.greater_equal(tail, 1 << 24, out=_work("flagged", count, _BOOL))
+        duplicates = int(np.count_nonzero(flagged))
+
+    rng = _work("range", count, _FLOAT32)
+    np.multiply(_gather("distance_point", distances, index), np.float32(m.DISTANCE_UNIT_M), out=rng)
+    horizontal = np.multiply(rng, laser["cos_elevation"], out=_work("horizontal", count, _FLOAT32))
+    z = np.multiply(rng, laser["sin_elevation"], out=rng)
+    np.add(z, laser["z_m"], out=points["z"])
+
+    centideg = np.multiply(block["rate"], laser["fraction"], out=_work("azimuth", count, _FLOAT32))
+    np.add(centideg, block["azimuth"], out=centideg)
     np.subtract(centideg, 36000, out=centideg, where=centideg >= 36000)
     azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=centideg)
     points["azimuth"] = azimuth
-    horizontal = rng * tables.cos_elevation.take(record)
-    np.multiply(horizontal, np.cos(azimuth), out=points["x"])
-    np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth), out=points["y"])
-    np.multiply(rng, tables.sin_elevation.take(record), out=rng)
-    np.add(rng, tables.vertical_offset_m.take(record), out=points["z"])
-    tail = points.view(_TAIL_VIEW)["tail"]
-    tail[...] = _tail_words(records, distance, dual, tables).reshape(-1).take(index)
-    return points
+    trig = _work("trig", count, _FLOAT32)
+    np.multiply(horizontal, np.cos(azimuth, out=trig), out=points["x"])
+    np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth, out=trig), out=points["y"])
+    return points, duplicates
