@@ -65,7 +65,7 @@ class Scan:
     @property
     def distinct(self) -> np.ndarray:
         """The points without the dual-return duplicates (each echo once)."""
-        return self.points[self.points["duplicate"] == 0]
+        return take_points(self.points, self.points["duplicate"] == 0)
 
 
 @dataclass(frozen=True, slots=True)
