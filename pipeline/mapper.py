@@ -91,6 +91,27 @@ _MAX_TRUNK_SIGHTINGS = 512
 
 
 @dataclass
+class _TrunkAsked:
+    """What `_Tree.trunk` was asked with (the sightings by identity: `add_trunks` makes a
+    new array at each change; the crown's centre by its bytes), and what it answered."""
+
+    trunks: np.ndarray
+    scans: int
+    centre: bytes | None
+    width: float
+    position: np.ndarray | None = None
+
+    def same(self, other: _TrunkAsked) -> bool:
+        # A NaN width never equals itself: asked again, which only costs the time.
+        return (
+            self.trunks is other.trunks
+            and self.scans == other.scans
+            and self.centre == other.centre
+            and self.width == other.width
+        )
+
+
+@dataclass
 class _Tree:
     traits: PaperTraits | RobustTraits
     votes: Votes = field(default_factory=Votes)
@@ -100,6 +121,21 @@ class _Tree:
     # x-y of the trunk axis under its crown, one per scan that saw exactly one (the traits
     # frame, as the outline), N x 2: where the tree stands (`trunk_position`).
     trunks: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+    # The last `trunk` asked and its answer (`_TrunkAsked`).
+    _trunk_asked: _TrunkAsked | None = field(default=None, repr=False, compare=False)
+
+    def trunk(
+        self, config: TraitsConfig, scans: int, centre: np.ndarray | None, width: float
+    ) -> np.ndarray | None:
+        """`trunk_position` of its sightings. The store asks for every tree in memory
+        after every scan, and most were not seen in it: the answer is kept while the
+        sightings (a new array at each change), the scans and the crown are as they were."""
+        asked = _TrunkAsked(self.trunks, scans, None if centre is None else centre.tobytes(), width)
+        if self._trunk_asked is not None and self._trunk_asked.same(asked):
+            return self._trunk_asked.position
+        asked.position = trunk_position(self.trunks, config, scans, centre, width)
+        self._trunk_asked = asked
+        return asked.position
 
     def add_trunks(self, xy: np.ndarray) -> None:
         """Sightings (N x 2) added; at most `_MAX_TRUNK_SIGHTINGS` are kept."""
@@ -301,9 +337,7 @@ class TreeMapper:
         tree = self._trees[track.tree_id]
         position = track.state[:3]
         centre = tree.traits.centre()
-        trunk = trunk_position(
-            tree.trunks, self.config.traits, track.observations, centre, tree.traits.width
-        )
+        trunk = tree.trunk(self.config.traits, track.observations, centre, tree.traits.width)
         if trunk is not None:
             centre = trunk
         x, y = position[0], position[1]
@@ -555,7 +589,8 @@ def trunk_position(
         return None
     if 2 * agreeing <= len(xy):
         return None
-    position = xy[close[best]].mean(axis=0)
+    # np.mean's own steps (one sum, one division) without its checks: the same bytes.
+    position = np.add.reduce(xy[close[best]], axis=0) / agreeing
     outlined = crown_centre is not None and np.isfinite(crown_width)
     if outlined and np.hypot(*(position - crown_centre)) > config.trunk_reach_share * crown_width:
         return None
@@ -568,10 +603,29 @@ def _crowded_places(xy: np.ndarray, cell: float, places: int = 8) -> np.ndarray:
     seen for minutes has hundreds of sightings, and the mapper asks every scan)."""
     cells = np.floor(xy / cell).astype(np.int64)
     keys = (cells[:, 0] << 32) + cells[:, 1]  # one int64 per cell (|cell| < 2^31)
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    inverse = _group_of(keys)
+    counts = np.bincount(inverse)
     top = np.argsort(-counts, kind="stable")[:places]
-    sums = np.column_stack([np.bincount(inverse, weights=xy[:, k]) for k in range(2)])
-    return sums[top] / counts[top, None]
+    # Both coordinates in one bincount (bin 2 g + k: coordinate k of group g), each bin
+    # summed in the sightings' order as one bincount per coordinate sums it.
+    sums = np.bincount((2 * inverse[:, None] + _XY).ravel(), weights=xy.ravel())
+    return sums.reshape(-1, 2)[top] / counts[top, None]
+
+
+_XY = np.arange(2)
+
+
+def _group_of(keys: np.ndarray) -> np.ndarray:
+    """Each key's index among the sorted distinct keys (np.unique's `inverse`), without
+    np.unique's checks and wrapping (a few hundred keys: those cost more than the sort)."""
+    order = np.argsort(keys)
+    ordered = keys[order]
+    new = np.empty(len(keys), dtype=bool)
+    new[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
+    inverse = np.empty(len(keys), dtype=np.intp)
+    inverse[order] = np.cumsum(new) - 1
+    return inverse
 
 
 def _position_sigma(pose: Pose | None) -> float | None:
