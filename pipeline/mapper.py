@@ -470,10 +470,10 @@ class TreeMapper:
         # trunk was hidden for a few scans) gives it back before anything is measured.
         world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
         own = centres.nearest_is(world[:, :2], tree_id)
-        points, ring = cluster.points[own], cluster.ring[own]
+        points, ring, world = _kept(own, cluster.points, cluster.ring, world)
         world_points = ground_world = None
         if outline:  # both methods keep the outline in the world frame (its centre)
-            world_points = world[own]
+            world_points = world
             # The ground under the cluster, carried into the world with the full attitude.
             foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
             ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
@@ -635,6 +635,16 @@ def _position_sigma(pose: Pose | None) -> float | None:
         return None
     block = np.asarray(pose.covariance, dtype=float)[:2, :2]
     return float(np.sqrt(max(np.linalg.eigvalsh(block).max(), 0.0)))
+
+
+def _kept(own: np.ndarray, *arrays: np.ndarray) -> list[np.ndarray]:
+    """The rows of each array where `own` holds (the arrays themselves, C-contiguous as
+    a selection would be, when it holds everywhere: the usual cluster with no neighbour's
+    piece). `compress` copies rows as blocks; a boolean index copies them value by value
+    (3x the time on a cluster's returns)."""
+    if own.all():
+        return [np.ascontiguousarray(array) for array in arrays]
+    return [array.compress(own, axis=0) for array in arrays]
 
 
 def _resolve(alias: dict[int, int], tree_id: int) -> int:

@@ -28,6 +28,7 @@ from treetraits.pipeline.config import TrackingConfig
 
 DIM = 5
 NDVI = 4  # index of the NDVI component
+_BITS = 1 << np.arange(DIM)
 
 
 @dataclass(frozen=True)
@@ -87,9 +88,13 @@ def mahalanobis(innovation: np.ndarray, S: np.ndarray, used: np.ndarray) -> np.n
         solved = np.linalg.solve(S[None, :, :, :], innovation[..., None])[..., 0]
         return np.sqrt(np.einsum("kmi,kmi->km", innovation, solved))
     out = np.empty(innovation.shape[:2])
-    for mask in np.unique(used.reshape(-1, DIM), axis=0):
-        pairs = np.all(used == mask, axis=2)
-        k, j = np.nonzero(pairs)
+    # Each pair's mask as one integer (component c is bit c): the distinct masks by a
+    # bincount; np.unique over boolean rows cost more than the solves. The same pairs,
+    # in the same order, go to each solve (pairs of different masks do not mix).
+    codes = used.astype(np.intp) @ _BITS
+    for code in np.flatnonzero(np.bincount(codes.ravel())):
+        mask = (code & _BITS) != 0
+        k, j = np.nonzero(codes == code)
         sub = S[j][:, mask][:, :, mask]
         i = innovation[k, j][:, mask]
         out[k, j] = np.sqrt(np.einsum("ni,ni->n", i, np.linalg.solve(sub, i[..., None])[..., 0]))

@@ -52,7 +52,7 @@ def slice_width(points: np.ndarray, slices: int = 10, floor: float = 0.0) -> flo
     span = max(float(z.max()) - low, 1e-9)
     index = np.minimum(((z - low) * (slices / span)).astype(np.int64), slices - 1)
     order = np.argsort(index, kind="stable")
-    ordered = points[order]
+    ordered = points.take(order, axis=0)  # rows copied as blocks: as points[order]
     counts = np.bincount(index, minlength=slices)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     filled = np.flatnonzero(counts >= 2)
@@ -221,7 +221,8 @@ class RobustTraits:
             return  # the finer outline, this scan in it, is the outline now
         points_world = np.asarray(points_world, dtype=float)
         keys, first = _distinct(_voxel_keys(points_world, self.voxel))
-        self._pending.append((keys, points_world[first]))  # one hit per cell per scan
+        # one hit per cell per scan (`take`: as points_world[first], rows as blocks)
+        self._pending.append((keys, points_world.take(first, axis=0)))
         self._pending_count += len(keys)
         # Fold pending cells in once they outnumber the grid: amortised O(n log n).
         if self._pending_count > max(len(self._keys), 5000):
@@ -300,7 +301,7 @@ class RobustTraits:
         grid_hits[grid_at] = after
         # The cells this merge brings to min_hits: grid cells crossing it, new ones at it.
         need = self.config.min_hits
-        new_points, new_hits = points[new], hits[new]
+        new_points, new_hits = points.compress(new, axis=0), hits[new]
         reached = np.vstack(
             [
                 self._points[grid_at[(before < need) & (after >= need)]],
@@ -321,7 +322,7 @@ class RobustTraits:
                 np.full(2, np.inf),
                 np.full(2, -np.inf),
             )
-            reached = points[hits >= need]
+            reached = points.compress(hits >= need, axis=0)
         if len(reached):
             self._seen_count += len(reached)
             self._seen_lo = np.minimum(self._seen_lo, reached[:, :2].min(axis=0))
@@ -330,7 +331,7 @@ class RobustTraits:
     def _seen(self) -> np.ndarray:
         """The cells hit in at least `min_hits` scans (their first returns)."""
         points, hits = self.cells()
-        return points[hits >= self.config.min_hits]
+        return points.compress(hits >= self.config.min_hits, axis=0)
 
     def _measure(self) -> tuple[float, float, np.ndarray]:
         if self._cache is None:
@@ -431,7 +432,7 @@ def _unique_cells(keys: np.ndarray, points: np.ndarray, hits: np.ndarray):
     its hits summed."""
     unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     hits = np.bincount(inverse.ravel(), weights=hits).astype(np.int64)
-    return unique, points[first], hits
+    return unique, points.take(first, axis=0), hits
 
 
 def _voxel_keys(xyz: np.ndarray, size: float) -> np.ndarray:
