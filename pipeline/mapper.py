@@ -468,7 +468,8 @@ class TreeMapper:
     ) -> None:
         # A cluster that took in a piece of a neighbour's crown (touching crowns whose
         # trunk was hidden for a few scans) gives it back before anything is measured.
-        world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
+        world = cluster.points @ traits_from_base[:3, :3].T
+        world += traits_from_base[:3, 3]  # in place: the same sums, no second array
         own = centres.nearest_is(world[:, :2], tree_id)
         points, ring, world = _kept(own, cluster.points, cluster.ring, world)
         world_points = ground_world = None
@@ -514,16 +515,20 @@ class TreeMapper:
                 elif self._kind(tree) not in UNCLAIMING:
                     centres[tree_id] = rotation @ tracks[tree_id].state[:3] + shift
         merged = []
+        placed = None  # (ids, N x 2 centres) in the dict's order, made when first needed
         for tree_id in sorted(touched):
             own = centres.get(tree_id)
             if own is None:
                 continue
+            if placed is None:
+                placed = list(centres), np.array(list(centres.values())).reshape(-1, 2)
+            # Every centre's distance in one hypot (the same values as one at a time).
+            ids, xy = placed
+            close = np.hypot(xy[:, 0] - own[0], xy[:, 1] - own[1]) < limit
             near = [
                 other
-                for other, centre in centres.items()
-                if other != tree_id
-                and float(np.hypot(*(centre - own))) < limit
-                and tracks[other].standing == tracks[tree_id].standing
+                for other in (ids[i] for i in np.flatnonzero(close))
+                if other != tree_id and tracks[other].standing == tracks[tree_id].standing
             ]
             if not near:
                 continue
@@ -533,6 +538,7 @@ class TreeMapper:
             centres.pop(drop)
             if (centre := self._trees[keep].traits.centre()) is not None:
                 centres[keep] = centre
+            placed = None  # the centres changed
             merged.append((keep, drop))
         return merged
 
@@ -674,13 +680,13 @@ class _Centres:
         a cluster that took in a piece of a neighbour's crown, a post or a person gives it
         back (a Voronoi cut), so it widens neither this tree's traits nor its outline."""
         own = self.xy[np.flatnonzero(self.ids == tree_id)[0]]
-        reach = float(np.sqrt(((xy - own) ** 2).sum(axis=1).max())) if len(xy) else 0.0
+        own_d2 = ((xy - own) ** 2).sum(axis=1)
+        reach = float(np.sqrt(own_d2.max())) if len(xy) else 0.0
         gap = self.xy - own
         near = self.claims & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
         if not near.any():
             return np.ones(len(xy), dtype=bool)
         others = self.xy[near]
-        own_d2 = ((xy - own) ** 2).sum(axis=1)
         other_d2 = ((xy[:, None, :] - others[None, :, :]) ** 2).sum(axis=2).min(axis=1)
         return own_d2 <= other_d2
 

@@ -436,7 +436,10 @@ def _unique_cells(keys: np.ndarray, points: np.ndarray, hits: np.ndarray):
 
 
 def _voxel_keys(xyz: np.ndarray, size: float) -> np.ndarray:
-    cells = np.floor(xyz / size).astype(np.int64) + (1 << 20)
+    scaled = xyz / size
+    np.floor(scaled, out=scaled)  # in place, as the addition below: no temporaries
+    cells = scaled.astype(np.int64)
+    cells += 1 << 20
     return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
 
 
