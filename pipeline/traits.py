@@ -54,7 +54,7 @@ def slice_width(points: np.ndarray, slices: int = 10, floor: float = 0.0) -> flo
     order = np.argsort(index, kind="stable")
     ordered = points.take(order, axis=0)  # rows copied as blocks: as points[order]
     counts = np.bincount(index, minlength=slices)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    starts = np.cumsum(counts) - counts  # each slice's first row (integers: exact)
     filled = np.flatnonzero(counts >= 2)
     if len(filled) == 0:
         return floor
