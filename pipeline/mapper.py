@@ -91,27 +91,6 @@ _MAX_TRUNK_SIGHTINGS = 512
 
 
 @dataclass
-class _TrunkAsked:
-    """What `_Tree.trunk` was asked with (the sightings by identity: `add_trunks` makes a
-    new array at each change; the crown's centre by its bytes), and what it answered."""
-
-    trunks: np.ndarray
-    scans: int
-    centre: bytes | None
-    width: float
-    position: np.ndarray | None = None
-
-    def same(self, other: _TrunkAsked) -> bool:
-        # A NaN width never equals itself: asked again, which only costs the time.
-        return (
-            self.trunks is other.trunks
-            and self.scans == other.scans
-            and self.centre == other.centre
-            and self.width == other.width
-        )
-
-
-@dataclass
 class _Tree:
     traits: PaperTraits | RobustTraits
     votes: Votes = field(default_factory=Votes)
@@ -121,21 +100,9 @@ class _Tree:
     # x-y of the trunk axis under its crown, one per scan that saw exactly one (the traits
     # frame, as the outline), N x 2: where the tree stands (`trunk_position`).
     trunks: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
-    # The last `trunk` asked and its answer (`_TrunkAsked`).
-    _trunk_asked: _TrunkAsked | None = field(default=None, repr=False, compare=False)
-
-    def trunk(
-        self, config: TraitsConfig, scans: int, centre: np.ndarray | None, width: float
-    ) -> np.ndarray | None:
-        """`trunk_position` of its sightings. The store asks for every tree in memory
-        after every scan, and most were not seen in it: the answer is kept while the
-        sightings (a new array at each change), the scans and the crown are as they were."""
-        asked = _TrunkAsked(self.trunks, scans, None if centre is None else centre.tobytes(), width)
-        if self._trunk_asked is not None and self._trunk_asked.same(asked):
-            return self._trunk_asked.position
-        asked.position = trunk_position(self.trunks, config, scans, centre, width)
-        self._trunk_asked = asked
-        return asked.position
+    # The record `TreeMapper._tracked` made of it last, with the key it built from the
+    # track and the map; None once the tree changed (a cluster, a vote, an absorbed track).
+    record: tuple[tuple, TrackedTree] | None = field(default=None, repr=False)
 
     def add_trunks(self, xy: np.ndarray) -> None:
         """Sightings (N x 2) added; at most `_MAX_TRUNK_SIGHTINGS` are kept."""
@@ -266,6 +233,7 @@ class TreeMapper:
             if decision.outcome == "duplicate":
                 continue
             tree = self._trees.setdefault(decision.tree_id, _Tree(new_traits(self.config.traits)))
+            tree.record = None
             tree.votes.add(cluster.verdict)
             if cluster.verdict == LOW:
                 # The understorey (weeds, a drip line's span, a skirt alone) adds nothing
@@ -334,10 +302,30 @@ class TreeMapper:
         return sorted(out, key=lambda tree: tree.tree_id)
 
     def _tracked(self, track, back: np.ndarray) -> TrackedTree:
+        """The tree's record; the one made before while neither the tree (`_Tree.record`)
+        nor its track's estimate, scans and times, nor the map's frame changed since: the
+        store asks for every tree in memory after every scan, most of them not seen in it."""
         tree = self._trees[track.tree_id]
+        made_of = (
+            track.state[:3].tobytes(),
+            track.observations,
+            track.first_seen,
+            track.last_seen,
+            self.frame,
+            self._traits_from_map.tobytes(),
+        )
+        if tree.record is not None and tree.record[0] == made_of:
+            return tree.record[1]
+        record = self._record(track, tree, back)
+        tree.record = (made_of, record)
+        return record
+
+    def _record(self, track, tree: _Tree, back: np.ndarray) -> TrackedTree:
         position = track.state[:3]
         centre = tree.traits.centre()
-        trunk = tree.trunk(self.config.traits, track.observations, centre, tree.traits.width)
+        trunk = trunk_position(
+            tree.trunks, self.config.traits, track.observations, centre, tree.traits.width
+        )
         if trunk is not None:
             centre = trunk
         x, y = position[0], position[1]
@@ -559,6 +547,7 @@ class TreeMapper:
         if gone is None:
             return
         tree = self._trees.setdefault(kept, _Tree(new_traits(self.config.traits)))
+        tree.record = None
         tree.traits.absorb(gone.traits)
         tree.votes.absorb(gone.votes)
         tree.ndvi_sum += gone.ndvi_sum
