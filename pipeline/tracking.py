@@ -390,12 +390,16 @@ def fuse_estimates(keep: Track, drop: Track) -> None:
     NDVI only one of them has is taken as it is."""
     x1, p1 = keep.kf.x[:, 0].copy(), keep.kf.P.copy()
     x2, p2 = drop.kf.x[:, 0], drop.kf.P
-    both = list(range(NDVI)) + ([NDVI] if keep.has_ndvi and drop.has_ndvi else [])
-    block = np.ix_(both, both)
-    gain = p1[block] @ np.linalg.inv(p1[block] + p2[block])
+    # The components both have are the first n (NDVI is the last): slices, not fancy
+    # indexing; the block copied to a C-ordered array as the fancy index made it, so the
+    # products and the inverse get the same operands (a tracker folds ~10 a scan in a
+    # cluttered field).
+    both = DIM if keep.has_ndvi and drop.has_ndvi else NDVI
+    block = np.ascontiguousarray(p1[:both, :both])
+    gain = block @ np.linalg.inv(block + p2[:both, :both])
     x, p = x1.copy(), p1.copy()
-    x[both] = x1[both] + gain @ (x2[both] - x1[both])
-    p[block] = p1[block] - gain @ p1[block]
+    x[:both] = x1[:both] + gain @ (x2[:both] - x1[:both])
+    p[:both, :both] = block - gain @ block
     if drop.has_ndvi and not keep.has_ndvi:
         x[NDVI] = x2[NDVI]
         p[NDVI, :] = p[:, NDVI] = 0.0
