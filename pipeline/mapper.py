@@ -669,14 +669,19 @@ class _Centres:
         a cluster that took in a piece of a neighbour's crown, a post or a person gives it
         back (a Voronoi cut), so it widens neither this tree's traits nor its outline."""
         own = self.xy[np.flatnonzero(self.ids == tree_id)[0]]
-        own_d2 = ((xy - own) ** 2).sum(axis=1)
+        # Squared distances as dx * dx + dy * dy, column by column: the values of
+        # ((p - q) ** 2).sum() over x and y, without a reduction along a 2-long axis.
+        x, y = xy[:, 0], xy[:, 1]
+        dx, dy = x - own[0], y - own[1]
+        own_d2 = dx * dx + dy * dy
         reach = float(np.sqrt(own_d2.max())) if len(xy) else 0.0
         gap = self.xy - own
         near = self.claims & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
         if not near.any():
             return np.ones(len(xy), dtype=bool)
         others = self.xy[near]
-        other_d2 = ((xy[:, None, :] - others[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+        dx, dy = x[:, None] - others[:, 0], y[:, None] - others[:, 1]
+        other_d2 = (dx * dx + dy * dy).min(axis=1)
         return own_d2 <= other_d2
 
 
