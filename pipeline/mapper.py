@@ -103,6 +103,13 @@ class _Tree:
     # The record `TreeMapper._tracked` made of it last, with the key it built from the
     # track and the map; None once the tree changed (a cluster, a vote, an absorbed track).
     record: tuple[tuple, TrackedTree] | None = field(default=None, repr=False)
+    # Its kind by its votes (`TreeMapper._kind`, asked for every tree every scan), kept
+    # until it changes.
+    kind_by_votes: str | None = field(default=None, repr=False)
+
+    def changed(self) -> None:
+        """A cluster, a vote or an absorbed track is changing it: what was kept goes."""
+        self.record = self.kind_by_votes = None
 
     def add_trunks(self, xy: np.ndarray) -> None:
         """Sightings (N x 2) added; at most `_MAX_TRUNK_SIGHTINGS` are kept."""
@@ -232,8 +239,7 @@ class TreeMapper:
         for cluster, decision in zip(detection.clusters, step.decisions, strict=True):
             if decision.outcome == "duplicate":
                 continue
-            tree = self._trees.setdefault(decision.tree_id, _Tree(new_traits(self.config.traits)))
-            tree.record = None
+            tree = self._changing(decision.tree_id)
             tree.votes.add(cluster.verdict)
             if cluster.verdict == LOW:
                 # The understorey (weeds, a drip line's span, a skirt alone) adds nothing
@@ -539,15 +545,26 @@ class TreeMapper:
 
     def _kind(self, tree: _Tree) -> str:
         """ "tree", or why not, by the majority of its scans' verdicts."""
-        classify = self.config.detection.classify
-        return tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all)
+        if tree.kind_by_votes is None:
+            classify = self.config.detection.classify
+            tree.kind_by_votes = tree.votes.kind(
+                classify.min_tree_share, classify.min_tree_share_all
+            )
+        return tree.kind_by_votes
+
+    def _changing(self, tree_id: int) -> _Tree:
+        """The tree of this id (a new one if there is none), about to be changed."""
+        tree = self._trees.get(tree_id)
+        if tree is None:  # not setdefault: it would build a tree's traits at every call
+            tree = self._trees[tree_id] = _Tree(new_traits(self.config.traits))
+        tree.changed()
+        return tree
 
     def _absorb(self, kept: int, absorbed: int) -> None:
         gone = self._trees.pop(absorbed, None)
         if gone is None:
             return
-        tree = self._trees.setdefault(kept, _Tree(new_traits(self.config.traits)))
-        tree.record = None
+        tree = self._changing(kept)
         tree.traits.absorb(gone.traits)
         tree.votes.absorb(gone.votes)
         tree.ndvi_sum += gone.ndvi_sum
