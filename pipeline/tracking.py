@@ -29,6 +29,10 @@ from treetraits.pipeline.config import TrackingConfig
 DIM = 5
 NDVI = 4  # index of the NDVI component
 _BITS = 1 << np.arange(DIM)
+# np.eye(DIM), made once: a filter's matrices are copies or products of it (np.eye
+# itself costs as much as the rest of starting a track).
+_EYE = np.eye(DIM)
+_LARGEST = np.finfo(float).max
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,16 @@ def mahalanobis(innovation: np.ndarray, S: np.ndarray, used: np.ndarray) -> np.n
         sub = S[j][:, mask][:, :, mask]
         i = innovation[k, j][:, mask]
         out[k, j] = np.sqrt(np.einsum("ni,ni->n", i, np.linalg.solve(sub, i[..., None])[..., 0]))
+    return out
+
+
+def _nan_to_num(values: np.ndarray) -> np.ndarray:
+    """np.nan_to_num of a float64 array (a copy: NaN 0, infinities the largest floats)
+    by its own three steps, without its dispatch and finfo look-ups."""
+    out = np.array(values, dtype=float)
+    np.copyto(out, 0.0, where=np.isnan(out))
+    np.copyto(out, _LARGEST, where=out == np.inf)
+    np.copyto(out, -_LARGEST, where=out == -np.inf)
     return out
 
 
@@ -268,12 +282,12 @@ class Tracker:
         measured_sensor = measurements[:, :3] @ rotation.T + translation
         predicted_sensor = states[:, :3] @ rotation.T + translation
         innovation = normalised_innovation(
-            np.nan_to_num(measurements), states, measured_sensor, predicted_sensor, cfg
+            _nan_to_num(measurements), states, measured_sensor, predicted_sensor, cfg
         )
         used = np.ones(innovation.shape, dtype=bool)
         has_tree_ndvi = np.array([tr.has_ndvi for tr in active])
         used[:, :, NDVI] = np.isfinite(measurements[:, NDVI])[:, None] & has_tree_ndvi[None, :]
-        S = np.array([tr.kf.P for tr in active]) + cfg.r * np.eye(DIM)  # H P H^T + R, H = I
+        S = np.array([tr.kf.P for tr in active]) + cfg.r * _EYE  # H P H^T + R, H = I
         log_p = -cfg.prob_scale * mahalanobis(innovation, S, used)
         return log_p, normalised_entropy(log_p)
 
@@ -283,12 +297,12 @@ class Tracker:
         cfg = self.config
         kf = KalmanFilter(dim_x=DIM, dim_z=DIM)
         has_ndvi = bool(np.isfinite(m[NDVI]))
-        kf.x = np.nan_to_num(m).reshape(DIM, 1).astype(float)
-        kf.P = np.eye(DIM) * cfg.p0
-        kf.F = np.eye(DIM)
-        kf.H = np.eye(DIM)
-        kf.Q = np.eye(DIM) * cfg.q
-        kf.R = np.eye(DIM) * cfg.r
+        kf.x = _nan_to_num(m).reshape(DIM, 1).astype(float)
+        kf.P = _EYE * cfg.p0
+        kf.F = _EYE.copy()
+        kf.H = _EYE.copy()
+        kf.Q = _EYE * cfg.q
+        kf.R = _EYE * cfg.r
         track = Track(self._next_id, kf, has_ndvi, t, t, ScanSet(self._scan))
         self._next_id += 1
         self.tracks.append(track)
@@ -307,8 +321,8 @@ class Tracker:
         if measured.all():
             track.kf.update(m)
         else:  # a missing component is not measured: H and R keep the measured rows only
-            H = np.eye(DIM)[measured]
-            track.kf.update(m[measured].reshape(-1, 1), R=np.eye(len(H)) * cfg.r, H=H)
+            H = _EYE[measured]
+            track.kf.update(m[measured].reshape(-1, 1), R=_EYE[: len(H), : len(H)] * cfg.r, H=H)
         track.scans.add(self._scan)
         track.last_seen = t
 
