@@ -222,7 +222,7 @@ class RobustTraits:
         ):
             return  # the finer outline, this scan in it, is the outline now
         points_world = np.asarray(points_world, dtype=float)
-        keys, first = _distinct(_voxel_keys(points_world, self.voxel))
+        keys, first = np.unique(_voxel_keys(points_world, self.voxel), return_index=True)
         # one hit per cell per scan (`take`: as points_world[first], rows as blocks)
         self._pending.append((keys, points_world.take(first, axis=0)))
         self._pending_count += len(keys)
@@ -384,18 +384,6 @@ def _pending_cells(pending: list[tuple[np.ndarray, np.ndarray]], count: int):
         np.vstack([p for _, p in pending]),
         np.ones(count, dtype=np.int64),
     )
-
-
-def _distinct(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """np.unique(keys, return_index=True) (the distinct keys in order, each one's first
-    place) by its own steps, a stable sort and a comparison of neighbours: on a scan's
-    few hundred returns its checks and wrapping cost as much as the work."""
-    order = np.argsort(keys, kind="stable")
-    ordered = keys[order]
-    first = np.empty(len(keys), dtype=bool)
-    first[:1] = True
-    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
-    return ordered[first], order[first]
 
 
 def _increasing(keys: np.ndarray) -> bool:
