@@ -100,6 +100,16 @@ class _Tree:
     # x-y of the trunk axis under its crown, one per scan that saw exactly one (the traits
     # frame, as the outline), N x 2: where the tree stands (`trunk_position`).
     trunks: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+    # The record `TreeMapper._tracked` made of it last, with the key it built from the
+    # track and the map; None once the tree changed (a cluster, a vote, an absorbed track).
+    record: tuple[tuple, TrackedTree] | None = field(default=None, repr=False)
+    # Its kind by its votes (`TreeMapper._kind`, asked for every tree every scan), kept
+    # until it changes.
+    kind_by_votes: str | None = field(default=None, repr=False)
+
+    def changed(self) -> None:
+        """A cluster, a vote or an absorbed track is changing it: what was kept goes."""
+        self.record = self.kind_by_votes = None
 
     def add_trunks(self, xy: np.ndarray) -> None:
         """Sightings (N x 2) added; at most `_MAX_TRUNK_SIGHTINGS` are kept."""
@@ -229,7 +239,7 @@ class TreeMapper:
         for cluster, decision in zip(detection.clusters, step.decisions, strict=True):
             if decision.outcome == "duplicate":
                 continue
-            tree = self._trees.setdefault(decision.tree_id, _Tree(new_traits(self.config.traits)))
+            tree = self._changing(decision.tree_id)
             tree.votes.add(cluster.verdict)
             if cluster.verdict == LOW:
                 # The understorey (weeds, a drip line's span, a skirt alone) adds nothing
@@ -298,7 +308,25 @@ class TreeMapper:
         return sorted(out, key=lambda tree: tree.tree_id)
 
     def _tracked(self, track, back: np.ndarray) -> TrackedTree:
+        """The tree's record; the one made before while neither the tree (`_Tree.record`)
+        nor its track's estimate, scans and times, nor the map's frame changed since: the
+        store asks for every tree in memory after every scan, most of them not seen in it."""
         tree = self._trees[track.tree_id]
+        made_of = (
+            track.state[:3].tobytes(),
+            track.observations,
+            track.first_seen,
+            track.last_seen,
+            self.frame,
+            self._traits_from_map.tobytes(),
+        )
+        if tree.record is not None and tree.record[0] == made_of:
+            return tree.record[1]
+        record = self._record(track, tree, back)
+        tree.record = (made_of, record)
+        return record
+
+    def _record(self, track, tree: _Tree, back: np.ndarray) -> TrackedTree:
         position = track.state[:3]
         centre = tree.traits.centre()
         trunk = trunk_position(
@@ -434,12 +462,13 @@ class TreeMapper:
     ) -> None:
         # A cluster that took in a piece of a neighbour's crown (touching crowns whose
         # trunk was hidden for a few scans) gives it back before anything is measured.
-        world = cluster.points @ traits_from_base[:3, :3].T + traits_from_base[:3, 3]
+        world = cluster.points @ traits_from_base[:3, :3].T
+        world += traits_from_base[:3, 3]  # in place: the same sums, no second array
         own = centres.nearest_is(world[:, :2], tree_id)
-        points, ring = cluster.points[own], cluster.ring[own]
+        points, ring, world = _kept(own, cluster.points, cluster.ring, world)
         world_points = ground_world = None
         if outline:  # both methods keep the outline in the world frame (its centre)
-            world_points = world[own]
+            world_points = world
             # The ground under the cluster, carried into the world with the full attitude.
             foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
             ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
@@ -480,16 +509,20 @@ class TreeMapper:
                 elif self._kind(tree) not in UNCLAIMING:
                     centres[tree_id] = rotation @ tracks[tree_id].state[:3] + shift
         merged = []
+        placed = None  # (ids, N x 2 centres) in the dict's order, made when first needed
         for tree_id in sorted(touched):
             own = centres.get(tree_id)
             if own is None:
                 continue
+            if placed is None:
+                placed = list(centres), np.array(list(centres.values())).reshape(-1, 2)
+            # Every centre's distance in one hypot (the same values as one at a time).
+            ids, xy = placed
+            close = np.hypot(xy[:, 0] - own[0], xy[:, 1] - own[1]) < limit
             near = [
                 other
-                for other, centre in centres.items()
-                if other != tree_id
-                and float(np.hypot(*(centre - own))) < limit
-                and tracks[other].standing == tracks[tree_id].standing
+                for other in (ids[i] for i in np.flatnonzero(close))
+                if other != tree_id and tracks[other].standing == tracks[tree_id].standing
             ]
             if not near:
                 continue
@@ -499,6 +532,7 @@ class TreeMapper:
             centres.pop(drop)
             if (centre := self._trees[keep].traits.centre()) is not None:
                 centres[keep] = centre
+            placed = None  # the centres changed
             merged.append((keep, drop))
         return merged
 
@@ -511,14 +545,26 @@ class TreeMapper:
 
     def _kind(self, tree: _Tree) -> str:
         """ "tree", or why not, by the majority of its scans' verdicts."""
-        classify = self.config.detection.classify
-        return tree.votes.kind(classify.min_tree_share, classify.min_tree_share_all)
+        if tree.kind_by_votes is None:
+            classify = self.config.detection.classify
+            tree.kind_by_votes = tree.votes.kind(
+                classify.min_tree_share, classify.min_tree_share_all
+            )
+        return tree.kind_by_votes
+
+    def _changing(self, tree_id: int) -> _Tree:
+        """The tree of this id (a new one if there is none), about to be changed."""
+        tree = self._trees.get(tree_id)
+        if tree is None:  # not setdefault: it would build a tree's traits at every call
+            tree = self._trees[tree_id] = _Tree(new_traits(self.config.traits))
+        tree.changed()
+        return tree
 
     def _absorb(self, kept: int, absorbed: int) -> None:
         gone = self._trees.pop(absorbed, None)
         if gone is None:
             return
-        tree = self._trees.setdefault(kept, _Tree(new_traits(self.config.traits)))
+        tree = self._changing(kept)
         tree.traits.absorb(gone.traits)
         tree.votes.absorb(gone.votes)
         tree.ndvi_sum += gone.ndvi_sum
@@ -555,7 +601,8 @@ def trunk_position(
         return None
     if 2 * agreeing <= len(xy):
         return None
-    position = xy[close[best]].mean(axis=0)
+    # np.mean's own steps (one sum, one division) without its checks: the same bytes.
+    position = np.add.reduce(xy[close[best]], axis=0) / agreeing
     outlined = crown_centre is not None and np.isfinite(crown_width)
     if outlined and np.hypot(*(position - crown_centre)) > config.trunk_reach_share * crown_width:
         return None
@@ -568,10 +615,29 @@ def _crowded_places(xy: np.ndarray, cell: float, places: int = 8) -> np.ndarray:
     seen for minutes has hundreds of sightings, and the mapper asks every scan)."""
     cells = np.floor(xy / cell).astype(np.int64)
     keys = (cells[:, 0] << 32) + cells[:, 1]  # one int64 per cell (|cell| < 2^31)
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    inverse = _group_of(keys)
+    counts = np.bincount(inverse)
     top = np.argsort(-counts, kind="stable")[:places]
-    sums = np.column_stack([np.bincount(inverse, weights=xy[:, k]) for k in range(2)])
-    return sums[top] / counts[top, None]
+    # Both coordinates in one bincount (bin 2 g + k: coordinate k of group g), each bin
+    # summed in the sightings' order as one bincount per coordinate sums it.
+    sums = np.bincount((2 * inverse[:, None] + _XY).ravel(), weights=xy.ravel())
+    return sums.reshape(-1, 2)[top] / counts[top, None]
+
+
+_XY = np.arange(2)
+
+
+def _group_of(keys: np.ndarray) -> np.ndarray:
+    """Each key's index among the sorted distinct keys (np.unique's `inverse`), without
+    np.unique's checks and wrapping (a few hundred keys: those cost more than the sort)."""
+    order = np.argsort(keys)
+    ordered = keys[order]
+    new = np.empty(len(keys), dtype=bool)
+    new[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
+    inverse = np.empty(len(keys), dtype=np.intp)
+    inverse[order] = np.cumsum(new) - 1
+    return inverse
 
 
 def _position_sigma(pose: Pose | None) -> float | None:
@@ -581,6 +647,16 @@ def _position_sigma(pose: Pose | None) -> float | None:
         return None
     block = np.asarray(pose.covariance, dtype=float)[:2, :2]
     return float(np.sqrt(max(np.linalg.eigvalsh(block).max(), 0.0)))
+
+
+def _kept(own: np.ndarray, *arrays: np.ndarray) -> list[np.ndarray]:
+    """The rows of each array where `own` holds (the arrays themselves, C-contiguous as
+    a selection would be, when it holds everywhere: the usual cluster with no neighbour's
+    piece). `compress` copies rows as blocks; a boolean index copies them value by value
+    (3x the time on a cluster's returns)."""
+    if own.all():
+        return [np.ascontiguousarray(array) for array in arrays]
+    return [array.compress(own, axis=0) for array in arrays]
 
 
 def _resolve(alias: dict[int, int], tree_id: int) -> int:
@@ -610,14 +686,19 @@ class _Centres:
         a cluster that took in a piece of a neighbour's crown, a post or a person gives it
         back (a Voronoi cut), so it widens neither this tree's traits nor its outline."""
         own = self.xy[np.flatnonzero(self.ids == tree_id)[0]]
-        reach = float(np.sqrt(((xy - own) ** 2).sum(axis=1).max())) if len(xy) else 0.0
+        # Squared distances as dx * dx + dy * dy, column by column: the values of
+        # ((p - q) ** 2).sum() over x and y, without a reduction along a 2-long axis.
+        x, y = xy[:, 0], xy[:, 1]
+        dx, dy = x - own[0], y - own[1]
+        own_d2 = dx * dx + dy * dy
+        reach = float(np.sqrt(own_d2.max())) if len(xy) else 0.0
         gap = self.xy - own
         near = self.claims & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
         if not near.any():
             return np.ones(len(xy), dtype=bool)
         others = self.xy[near]
-        own_d2 = ((xy - own) ** 2).sum(axis=1)
-        other_d2 = ((xy[:, None, :] - others[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+        dx, dy = x[:, None] - others[:, 0], y[:, None] - others[:, 1]
+        other_d2 = (dx * dx + dy * dy).min(axis=1)
         return own_d2 <= other_d2
 
 

@@ -28,6 +28,11 @@ from treetraits.pipeline.config import TrackingConfig
 
 DIM = 5
 NDVI = 4  # index of the NDVI component
+_BITS = 1 << np.arange(DIM)
+# np.eye(DIM), made once: a filter's matrices are copies or products of it (np.eye
+# itself costs as much as the rest of starting a track).
+_EYE = np.eye(DIM)
+_LARGEST = np.finfo(float).max
 
 
 @dataclass(frozen=True)
@@ -87,12 +92,26 @@ def mahalanobis(innovation: np.ndarray, S: np.ndarray, used: np.ndarray) -> np.n
         solved = np.linalg.solve(S[None, :, :, :], innovation[..., None])[..., 0]
         return np.sqrt(np.einsum("kmi,kmi->km", innovation, solved))
     out = np.empty(innovation.shape[:2])
-    for mask in np.unique(used.reshape(-1, DIM), axis=0):
-        pairs = np.all(used == mask, axis=2)
-        k, j = np.nonzero(pairs)
+    # Each pair's mask as one integer (component c is bit c): the distinct masks by a
+    # bincount; np.unique over boolean rows cost more than the solves. The same pairs,
+    # in the same order, go to each solve (pairs of different masks do not mix).
+    codes = used.astype(np.intp) @ _BITS
+    for code in np.flatnonzero(np.bincount(codes.ravel())):
+        mask = (code & _BITS) != 0
+        k, j = np.nonzero(codes == code)
         sub = S[j][:, mask][:, :, mask]
         i = innovation[k, j][:, mask]
         out[k, j] = np.sqrt(np.einsum("ni,ni->n", i, np.linalg.solve(sub, i[..., None])[..., 0]))
+    return out
+
+
+def _nan_to_num(values: np.ndarray) -> np.ndarray:
+    """np.nan_to_num of a float64 array (a copy: NaN 0, infinities the largest floats)
+    by its own three steps, without its dispatch and finfo look-ups."""
+    out = np.array(values, dtype=float)
+    np.copyto(out, 0.0, where=np.isnan(out))
+    np.copyto(out, _LARGEST, where=out == np.inf)
+    np.copyto(out, -_LARGEST, where=out == -np.inf)
     return out
 
 
@@ -263,12 +282,12 @@ class Tracker:
         measured_sensor = measurements[:, :3] @ rotation.T + translation
         predicted_sensor = states[:, :3] @ rotation.T + translation
         innovation = normalised_innovation(
-            np.nan_to_num(measurements), states, measured_sensor, predicted_sensor, cfg
+            _nan_to_num(measurements), states, measured_sensor, predicted_sensor, cfg
         )
         used = np.ones(innovation.shape, dtype=bool)
         has_tree_ndvi = np.array([tr.has_ndvi for tr in active])
         used[:, :, NDVI] = np.isfinite(measurements[:, NDVI])[:, None] & has_tree_ndvi[None, :]
-        S = np.array([tr.kf.P for tr in active]) + cfg.r * np.eye(DIM)  # H P H^T + R, H = I
+        S = np.array([tr.kf.P for tr in active]) + cfg.r * _EYE  # H P H^T + R, H = I
         log_p = -cfg.prob_scale * mahalanobis(innovation, S, used)
         return log_p, normalised_entropy(log_p)
 
@@ -278,12 +297,12 @@ class Tracker:
         cfg = self.config
         kf = KalmanFilter(dim_x=DIM, dim_z=DIM)
         has_ndvi = bool(np.isfinite(m[NDVI]))
-        kf.x = np.nan_to_num(m).reshape(DIM, 1).astype(float)
-        kf.P = np.eye(DIM) * cfg.p0
-        kf.F = np.eye(DIM)
-        kf.H = np.eye(DIM)
-        kf.Q = np.eye(DIM) * cfg.q
-        kf.R = np.eye(DIM) * cfg.r
+        kf.x = _nan_to_num(m).reshape(DIM, 1).astype(float)
+        kf.P = _EYE * cfg.p0
+        kf.F = _EYE.copy()
+        kf.H = _EYE.copy()
+        kf.Q = _EYE * cfg.q
+        kf.R = _EYE * cfg.r
         track = Track(self._next_id, kf, has_ndvi, t, t, ScanSet(self._scan))
         self._next_id += 1
         self.tracks.append(track)
@@ -302,8 +321,8 @@ class Tracker:
         if measured.all():
             track.kf.update(m)
         else:  # a missing component is not measured: H and R keep the measured rows only
-            H = np.eye(DIM)[measured]
-            track.kf.update(m[measured].reshape(-1, 1), R=np.eye(len(H)) * cfg.r, H=H)
+            H = _EYE[measured]
+            track.kf.update(m[measured].reshape(-1, 1), R=_EYE[: len(H), : len(H)] * cfg.r, H=H)
         track.scans.add(self._scan)
         track.last_seen = t
 
@@ -385,12 +404,16 @@ def fuse_estimates(keep: Track, drop: Track) -> None:
     NDVI only one of them has is taken as it is."""
     x1, p1 = keep.kf.x[:, 0].copy(), keep.kf.P.copy()
     x2, p2 = drop.kf.x[:, 0], drop.kf.P
-    both = list(range(NDVI)) + ([NDVI] if keep.has_ndvi and drop.has_ndvi else [])
-    block = np.ix_(both, both)
-    gain = p1[block] @ np.linalg.inv(p1[block] + p2[block])
+    # The components both have are the first n (NDVI is the last): slices, not fancy
+    # indexing; the block copied to a C-ordered array as the fancy index made it, so the
+    # products and the inverse get the same operands (a tracker folds ~10 a scan in a
+    # cluttered field).
+    both = DIM if keep.has_ndvi and drop.has_ndvi else NDVI
+    block = np.ascontiguousarray(p1[:both, :both])
+    gain = block @ np.linalg.inv(block + p2[:both, :both])
     x, p = x1.copy(), p1.copy()
-    x[both] = x1[both] + gain @ (x2[both] - x1[both])
-    p[block] = p1[block] - gain @ p1[block]
+    x[:both] = x1[:both] + gain @ (x2[:both] - x1[:both])
+    p[:both, :both] = block - gain @ block
     if drop.has_ndvi and not keep.has_ndvi:
         x[NDVI] = x2[NDVI]
         p[NDVI, :] = p[:, NDVI] = 0.0

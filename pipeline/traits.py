@@ -51,10 +51,12 @@ def slice_width(points: np.ndarray, slices: int = 10, floor: float = 0.0) -> flo
     low = float(z.min())
     span = max(float(z.max()) - low, 1e-9)
     index = np.minimum(((z - low) * (slices / span)).astype(np.int64), slices - 1)
-    order = np.argsort(index, kind="stable")
-    ordered = points[order]
+    # Slice numbers as int16, which NumPy sorts stably by radix: the same order in under
+    # half the time of the int64 sort (900 returns: 13 -> 6 us).
+    order = np.argsort(index.astype(np.int16) if slices < 2**15 else index, kind="stable")
+    ordered = points.take(order, axis=0)  # rows copied as blocks: as points[order]
     counts = np.bincount(index, minlength=slices)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    starts = np.cumsum(counts) - counts  # each slice's first row (integers: exact)
     filled = np.flatnonzero(counts >= 2)
     if len(filled) == 0:
         return floor
@@ -221,7 +223,8 @@ class RobustTraits:
             return  # the finer outline, this scan in it, is the outline now
         points_world = np.asarray(points_world, dtype=float)
         keys, first = np.unique(_voxel_keys(points_world, self.voxel), return_index=True)
-        self._pending.append((keys, points_world[first]))  # one hit per cell per scan
+        # one hit per cell per scan (`take`: as points_world[first], rows as blocks)
+        self._pending.append((keys, points_world.take(first, axis=0)))
         self._pending_count += len(keys)
         # Fold pending cells in once they outnumber the grid: amortised O(n log n).
         if self._pending_count > max(len(self._keys), 5000):
@@ -285,30 +288,31 @@ class RobustTraits:
         # a new one is inserted in key order. The same cells, returns and hits as one
         # np.unique over the grid and the pending cells together, without sorting the
         # whole grid again at every scan (the outline's centre is asked every scan).
-        keys, points, hits = _unique_cells(
-            np.concatenate([k for k, _ in self._pending]),
-            np.vstack([p for _, p in self._pending]),
-            np.ones(self._pending_count, dtype=np.int64),
-        )
+        keys, points, hits = _pending_cells(self._pending, self._pending_count)
         self._pending, self._pending_count = [], 0
         at = np.searchsorted(self._keys, keys)
-        known = at < len(self._keys)
-        known[known] = self._keys[at[known]] == keys[known]
-        grid_hits = self._hits.copy()
-        grid_hits[at[known]] += hits[known]
+        if len(self._keys):  # a key past the last one reads the last one: not its own
+            known = self._keys.take(at, mode="clip") == keys
+        else:
+            known = np.zeros(len(keys), dtype=bool)
         new = ~known
+        grid_at = at[known]  # distinct: the pending keys are
+        before = self._hits[grid_at]
+        after = before + hits[known]
+        grid_hits = self._hits.copy()
+        grid_hits[grid_at] = after
         # The cells this merge brings to min_hits: grid cells crossing it, new ones at it.
         need = self.config.min_hits
-        before, after = self._hits[at[known]], grid_hits[at[known]]
+        new_points, new_hits = points.compress(new, axis=0), hits[new]
         reached = np.vstack(
             [
-                self._points[at[known][(before < need) & (after >= need)]],
-                points[new][hits[new] >= need],
+                self._points[grid_at[(before < need) & (after >= need)]],
+                new_points[new_hits >= need],
             ]
         )
-        keys = np.insert(self._keys, at[new], keys[new])
-        points = np.insert(self._points, at[new], points[new], axis=0)
-        hits = np.insert(grid_hits, at[new], hits[new])
+        keys, points, hits = _inserted(
+            at[new], (self._keys, keys[new]), (self._points, new_points), (grid_hits, new_hits)
+        )
         coarsened = len(keys) > self.config.max_points
         while len(keys) > self.config.max_points:
             self.voxel *= 2.0
@@ -320,7 +324,7 @@ class RobustTraits:
                 np.full(2, np.inf),
                 np.full(2, -np.inf),
             )
-            reached = points[hits >= need]
+            reached = points.compress(hits >= need, axis=0)
         if len(reached):
             self._seen_count += len(reached)
             self._seen_lo = np.minimum(self._seen_lo, reached[:, :2].min(axis=0))
@@ -329,7 +333,7 @@ class RobustTraits:
     def _seen(self) -> np.ndarray:
         """The cells hit in at least `min_hits` scans (their first returns)."""
         points, hits = self.cells()
-        return points[hits >= self.config.min_hits]
+        return points.compress(hits >= self.config.min_hits, axis=0)
 
     def _measure(self) -> tuple[float, float, np.ndarray]:
         if self._cache is None:
@@ -368,16 +372,64 @@ def caliper(xy: np.ndarray, directions: int) -> tuple[float, np.ndarray]:
     return float(extents.max()), (xy.min(axis=0) + xy.max(axis=0)) / 2
 
 
+def _pending_cells(pending: list[tuple[np.ndarray, np.ndarray]], count: int):
+    """The pending cells as `_unique_cells` makes them. One scan's cells alone (the usual
+    case: the outline's centre is asked every scan) are distinct and in key order
+    already, so np.unique would return them as they are, each with one hit."""
+    if len(pending) == 1 and _increasing(pending[0][0]):
+        keys, points = pending[0]
+        return keys, points, np.ones(count, dtype=np.int64)
+    return _unique_cells(
+        np.concatenate([k for k, _ in pending]),
+        np.vstack([p for _, p in pending]),
+        np.ones(count, dtype=np.int64),
+    )
+
+
+def _increasing(keys: np.ndarray) -> bool:
+    return len(keys) < 2 or bool((keys[1:] > keys[:-1]).all())
+
+
+def _inserted(at: np.ndarray, *pairs: tuple[np.ndarray, np.ndarray]) -> list[np.ndarray]:
+    """np.insert(grid, at, values) for each (grid, values) pair (along the first axis),
+    the places worked out once: `at` is non-decreasing (searchsorted of sorted keys), so
+    the values land at at + 0, 1, 2, ... as np.insert puts them."""
+    size = len(pairs[0][0]) + len(at)
+    slots = at + np.arange(len(at))
+    kept = np.ones(size, dtype=bool)
+    kept[slots] = False
+    out = []
+    for grid, values in pairs:
+        merged = np.empty((size, *grid.shape[1:]), dtype=grid.dtype)
+        merged[slots] = values
+        _items(merged)[kept] = _items(grid)
+        out.append(merged)
+    return out
+
+
+def _items(array: np.ndarray) -> np.ndarray:
+    """A C-contiguous array as a 1-D array of its rows, each one opaque item: a boolean
+    mask copies whole rows at 1-D speed (row by row, NumPy's 2-D masked copy of a grid's
+    few thousand returns took 3x as long as all the rest of a merge). The same bytes."""
+    if array.ndim == 1:
+        return array
+    rows = np.ascontiguousarray(array)
+    return rows.view(np.dtype((np.void, rows.itemsize * rows.shape[1]))).reshape(-1)
+
+
 def _unique_cells(keys: np.ndarray, points: np.ndarray, hits: np.ndarray):
     """Cells in key order: each key's first point in arrival order (deterministic) and
     its hits summed."""
     unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     hits = np.bincount(inverse.ravel(), weights=hits).astype(np.int64)
-    return unique, points[first], hits
+    return unique, points.take(first, axis=0), hits
 
 
 def _voxel_keys(xyz: np.ndarray, size: float) -> np.ndarray:
-    cells = np.floor(xyz / size).astype(np.int64) + (1 << 20)
+    scaled = xyz / size
+    np.floor(scaled, out=scaled)  # in place, as the addition below: no temporaries
+    cells = scaled.astype(np.int64)
+    cells += 1 << 20
     return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
 
 
