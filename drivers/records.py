@@ -31,12 +31,24 @@ POINT_DTYPE = np.dtype(
 )
 
 
+def row_items(array: np.ndarray) -> np.ndarray:
+    """The array's rows (along its first axis) as a 1-D array of opaque items over the
+    same memory: a mask or an index then copies each row as one block of bytes. NumPy
+    copies a packed structured dtype field by field, record by record (~35 ns a point,
+    30x the copy of the same bytes), and a 2-D array's rows value by value. A plain 1-D
+    array is returned as it is: its items are copied natively already. A 2-D array must be
+    C-contiguous (a copy otherwise, which writes would not reach)."""
+    if array.ndim == 1 and array.dtype.fields is None:
+        return array
+    rows = array if array.ndim == 1 else np.ascontiguousarray(array)
+    width = rows.itemsize * (rows.shape[1] if rows.ndim == 2 else 1)
+    return rows.view(np.dtype((np.void, width))).reshape(-1)
+
+
 def take_points(points: np.ndarray, index: np.ndarray | slice) -> np.ndarray:
     """`points[index]` (a new array) for a structured array such as `POINT_DTYPE`, copied
-    as whole records. NumPy copies a packed structured dtype field by field, record by
-    record: ~35 ns a point, 30x the copy of the same bytes (0.6 ms for a 17k-point scan)."""
-    records = points.view(np.dtype((np.void, points.dtype.itemsize)))
-    taken = records[index]
+    as whole records (`row_items`: 0.6 -> 0.016 ms for a 17k-point scan)."""
+    taken = row_items(points)[index]
     if isinstance(index, slice):
         taken = taken.copy()  # a slice is a view
     return taken.view(points.dtype)

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from treetraits.drivers.records import POINT_DTYPE, Scan, take_points
+from treetraits.drivers.records import POINT_DTYPE, Scan, row_items, take_points
 from treetraits.pipeline.deskew import deskew, deskew_scan, scan_point_host_times
 from treetraits.pipeline.localization.attitude import rotation_zyx
 from treetraits.pipeline.projection import scan_mid_time
@@ -176,3 +176,14 @@ def test_take_points_is_indexing_as_a_copy():
         assert taken.dtype == POINT_DTYPE
         assert taken.tobytes() == points[index].tobytes()
         assert not np.shares_memory(taken, points)
+
+
+def test_row_items_copies_rows_of_a_grid_under_a_mask():
+    rng = np.random.default_rng(4)
+    grid = rng.normal(size=(200, 3))
+    mask = rng.random(200) < 0.5
+    out = np.zeros((int(mask.sum()), 3))
+    row_items(out)[:] = row_items(grid)[mask]
+    assert np.array_equal(out, grid[mask])
+    keys = np.arange(10)
+    assert row_items(keys) is keys  # plain 1-D items are copied natively already
