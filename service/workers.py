@@ -139,6 +139,10 @@ class Worker(abc.ABC):
             self._schedule_retry(exc)
 
     def start(self) -> None:
+        # Silence counts from here, when the device is first read: between open() and
+        # start() the service loads its pipeline (1-2 s on a loaded machine), and a
+        # sensor is not silent for what nobody was listening to.
+        self.started = time.monotonic()
         self._thread.start()
 
     def stop(self) -> None:

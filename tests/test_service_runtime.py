@@ -271,3 +271,20 @@ def test_gnss_on_a_pty_then_the_pty_closed_is_reported_disconnected():
     finally:
         worker.stop()
         worker.join(2.0)
+
+
+def test_silence_counts_from_when_the_device_is_first_read():
+    # The service opens its devices, then loads the pipeline (1-2 s on a loaded machine),
+    # then starts reading: a sensor is not silent for that time (READY said DEGRADED).
+    cfg = LidarConfig(bind="127.0.0.1", data_port=free_udp_port(), telemetry_port=0, silence_s=0.3)
+    worker = LidarWorker(cfg, BoundedQueue("lidar", 10, threading.Event()))
+    worker.open(retry=False)
+    try:
+        time.sleep(0.5)  # longer than silence_s between open and start
+        worker.start()
+        assert sensor_problem(worker.state(), time.monotonic()) == ("ok", None)
+        time.sleep(0.5)  # and silent once nothing came for silence_s of reading
+        assert sensor_problem(worker.state(), time.monotonic())[0] == "silent"
+    finally:
+        worker.stop()
+        worker.join(2.0)
