@@ -73,6 +73,8 @@ PIPELINE_MODULES = (
     "scipy.optimize",
     "scipy.spatial",
     "treetraits.pipeline.fusion",
+    # Every module with compiled kernels (treetraits.jit), for their warm-ups.
+    "treetraits.drivers.velodyne.packet",
 )
 
 
@@ -244,13 +246,16 @@ class Service:
                 worker.play_video(start_ns)
 
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
+        from treetraits.jit import compile_all
         from treetraits.service.replay import make_processor
 
         self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
-        # What the pipeline imports where it is used, imported before READY: the first
-        # scans would otherwise wait ~1-2 s for them, a backlog past max_backlog_s.
+        # What the pipeline imports where it is used, imported (and its kernels compiled)
+        # before READY: the first scans would otherwise wait ~1-2 s for them, a backlog
+        # past max_backlog_s.
         for module in PIPELINE_MODULES:
             importlib.import_module(module)
+        compile_all()
         if self.cfg.service.max_backlog_s > 0:
             limit_ns = round(self.cfg.service.max_backlog_s * 1e9)
             # Items carry their receive time on the host's clock (`Message.log_time`).

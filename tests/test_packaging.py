@@ -36,7 +36,7 @@ ALLOWED = {
         "treetraits.firmware_bridge",
     },
 }
-SHARED = {"treetraits", "treetraits.errors"}
+SHARED = {"treetraits", "treetraits.errors", "treetraits.jit"}
 
 
 def package_dirs() -> dict[str, Path]:

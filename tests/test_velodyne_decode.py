@@ -1,8 +1,8 @@
-"""`decode_packets` on batches of any size and from several threads at once.
+"""`decode_packets` on batches of any size and from several threads at once, and its
+compiled kernels made ready before a scan needs them.
 
-The decoder keeps work memory per thread and reuses it up to a size; larger
-batches get their own. Expected values come from decoding one packet at a time: a
-packet's points depend on that packet alone.
+Expected values come from decoding one packet at a time: a packet's points depend on
+that packet alone.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import pytest
 from tests.conftest import VLP16_DIR
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne import packet as p
+from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.drivers.velodyne.sources import open_source
 
 CAPTURES = ["einride_vlp16_strongest_1000pkts.bin", "nebula_vlp16_dual_10hz.pcap"]
@@ -48,16 +49,6 @@ def test_batches_of_any_size_decode_as_their_packets(name):
         assert decoded.tobytes() == one_at_a_time(packets[:count], t_packet[:count])
 
 
-def test_work_memory_is_kept_up_to_its_cap_only():
-    int64 = np.dtype(np.int64)
-    small, smaller = p._work("test", 1000, int64), p._work("test", 10, int64)
-    assert np.shares_memory(small, smaller)  # the same thread memory, reused
-    assert smaller.dtype == int64 and len(smaller) == 10
-    assert not np.shares_memory(small, p._work("other", 10, int64))  # one buffer a name
-    beyond = p._work("test", p._SCRATCH_MAX_BYTES // 8 + 1, int64)
-    assert not np.shares_memory(beyond, p._work("test", 10, int64))
-
-
 def test_threads_decoding_at_once_get_their_own_points():
     batches = [real_packets(name) for name in CAPTURES]
     expected = [p.decode_packets(k[:200], t[:200], m.VLP16).tobytes() for k, t in batches]
@@ -78,3 +69,19 @@ def test_duplicates_are_counted_as_flagged(name):
     assert points.tobytes() == p.decode_packets(packets, t_packet, m.VLP16).tobytes()
     assert duplicates == np.count_nonzero(points["duplicate"])
     assert (duplicates > 0) == (packets["return_mode"][0] == m.RETURN_DUAL)
+
+
+def test_compile_kernels_compiles_what_real_scans_use():
+    """The service compiles the kernels before READY (`compile_kernels`); decoding real
+    captures of both return modes afterwards must not need another compilation (numba
+    compiles anew for every new combination of argument types and layouts)."""
+    p.compile_kernels()
+    compiled = (len(p._count_returns.signatures), len(p._fill_points.signatures))
+    for name in CAPTURES:
+        source = open_source(VLP16_DIR / name)
+        batcher = ScanBatcher()
+        scans = [batcher.push(packet.payload, packet.t_host) for packet in source if packet.is_data]
+        source.close()
+        assert any(scan is not None and len(scan.points) for scan in scans)
+    assert (len(p._count_returns.signatures), len(p._fill_points.signatures)) == compiled
+    assert compiled == (1, 1)

@@ -56,3 +56,10 @@ class FileAccessError(TreetraitsError):
     disk full, a file where a directory should be, an I/O error)."""
 
     exit_code = EXIT_IO
+
+
+class PlatformError(TreetraitsError):
+    """The machine refuses something the code needs to run at all (executable memory for
+    the compiled kernels); what to change is in the message."""
+
+    exit_code = EXIT_IO

@@ -1,15 +1,14 @@
-"""Pure, vectorised decoding of VLP-16 data packets (1206-byte payloads).
+"""Pure decoding of VLP-16 data packets (1206-byte payloads).
 
-A batch of N packets is viewed in place as a structured array (`PACKET_DTYPE`), checked,
-and turned into points by NumPy, each field written once: no Python loop per packet or
-per point. The points depend on the packets alone; each thread keeps its work memory
-from one call to the next (`_work`). Conventions (ROS `lidar` frame, vertical offset
+A batch of N packets is viewed in place as a structured array (`PACKET_DTYPE`), checked
+by NumPy, and turned into points by two compiled passes over its bytes (`treetraits.jit`)
+and NumPy's trigonometry: no Python loop per packet or per point. The points depend on
+the packets alone. Conventions (ROS `lidar` frame, vertical offset
 applied, per-point time) are documented in `docs/lidar.md`.
 """
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -17,6 +16,7 @@ import numpy as np
 
 from treetraits.drivers.records import POINT_DTYPE
 from treetraits.drivers.velodyne import models as m
+from treetraits.jit import kernel, warm_up
 
 BLOCK_DTYPE = np.dtype(
     [
@@ -40,43 +40,36 @@ _RECORD = np.arange(m.RECORDS_PER_BLOCK)
 _LASER_OF_RECORD = _RECORD % m.LASERS
 # Firing time of record j after the first firing of its block.
 _T_IN_BLOCK_NS = (_RECORD // m.LASERS) * m.SEQUENCE_NS + _LASER_OF_RECORD * m.LASER_SLOT_NS
-# A record's index in a scan's (packet, block, record) order: the low 5 bits are j.
-_RECORD_BITS = m.RECORDS_PER_BLOCK - 1
-_RECORD_SHIFT = _RECORD_BITS.bit_length()  # index >> 5: the block, counted over the batch
-assert m.RECORDS_PER_BLOCK & _RECORD_BITS == 0
-# The four one-byte fields that end a point (intensity, ring, return_type, duplicate),
-# seen as one little-endian word: one strided write per point instead of four.
-_TAIL_VIEW = np.dtype({"names": ["tail"], "formats": ["<u4"], "offsets": [24], "itemsize": 28})
-assert [POINT_DTYPE.fields[f][1] for f in ("intensity", "ring", "return_type", "duplicate")] == [
-    24,
-    25,
-    26,
-    27,
-] and POINT_DTYPE.itemsize == _TAIL_VIEW.itemsize
-# What a point takes from its block and from its record j, each gathered in one `take` of
-# 16-byte items (a gather costs about the same for 4- or 16-byte items).
-_BLOCK_TERMS = np.dtype([("azimuth", "<f4"), ("rate", "<f4"), ("t_ns", "<i8")])
-_LASER_TERMS = np.dtype(
-    [("fraction", "<f4"), ("cos_elevation", "<f4"), ("sin_elevation", "<f4"), ("z_m", "<f4")]
-)
-# A structured `take` is several times slower than one of plain items of the same size.
-_ITEM16 = np.dtype("V16")
-assert _BLOCK_TERMS.itemsize == _LASER_TERMS.itemsize == _ITEM16.itemsize
+# A point seen as 7 four-byte words, so that the kernel writes its fields through two
+# (points, 7) C-ordered views (float32 and uint32) whatever the number of points (numba
+# compiles anew for each array layout, and views of one field are strided or, for one
+# point, contiguous). Word 6 holds the four one-byte fields that end a point.
+_WORDS = POINT_DTYPE.itemsize // 4
+_Z, _AZIMUTH, _T_LOW, _T_HIGH, _TAIL = 2, 3, 4, 5, 6
+assert [POINT_DTYPE.fields[f][1] for f in ("z", "azimuth", "t", "intensity", "duplicate")] == [
+    4 * _Z,
+    4 * _AZIMUTH,
+    4 * _T_LOW,
+    4 * _TAIL,
+    4 * _TAIL + 3,
+] and POINT_DTYPE.itemsize == 4 * _WORDS
 
 
 @dataclass(frozen=True, eq=False)
 class _RecordTables:
     """What a record's place in the packet says about its point, whatever the packet
-    holds: terms of the record j alone, looked up per point, and of the block, which
-    broadcast over a batch of packets."""
+    holds: terms of the block b (0..11) and of the record j (0..31) in it."""
 
-    block_t_offset_ns: np.ndarray  # (12,): the block's first firing after the packet's ToH
+    block_t_offset_ns: np.ndarray  # (12,) int64: the block's first firing after the ToH
     t_in_block_ns: np.ndarray  # (32,) int64: firing time after the block's first firing
-    # (32,) `_LASER_TERMS`: that time in firing blocks (to interpolate the azimuth), the
-    # elevation's cosine and sine, the vertical offset
+    # (4, 32) float32, rows: that time in firing blocks (to interpolate the azimuth), the
+    # elevation's cosine and sine, the vertical offset (m)
     laser: np.ndarray
-    laser_items: np.ndarray  # `laser` seen as plain 16-byte items, to gather
     tail: np.ndarray  # (12, 32) "<u4": ring and return_type in their bytes of the tail word
+
+    def kernel_args(self) -> tuple[np.ndarray, ...]:
+        """The tables in `_fill_points`' order (not `astuple`: it deep-copies arrays)."""
+        return self.block_t_offset_ns, self.t_in_block_ns, self.laser, self.tail
 
 
 @lru_cache(maxsize=16)
@@ -91,17 +84,22 @@ def _record_tables(dual: bool, last_return: bool, optics: m.LaserModel) -> _Reco
         return_type = m.RETURN_TYPE_LAST if last_return else m.RETURN_TYPE_STRONGEST
     ring = optics.ring[_LASER_OF_RECORD].astype(np.uint32)
     tail = (ring << 8) | (np.asarray(return_type, dtype=np.uint32) << 16)
-    laser = np.empty(m.RECORDS_PER_BLOCK, dtype=_LASER_TERMS)
-    laser["fraction"] = _T_IN_BLOCK_NS / m.BLOCK_NS
-    laser["cos_elevation"] = np.cos(elevation)
-    laser["sin_elevation"] = np.sin(elevation)
-    laser["z_m"] = (np.asarray(optics.vertical_offset_mm) / 1000)[_LASER_OF_RECORD]
+    laser = np.stack(
+        [
+            _T_IN_BLOCK_NS / m.BLOCK_NS,
+            np.cos(elevation),
+            np.sin(elevation),
+            (np.asarray(optics.vertical_offset_mm) / 1000)[_LASER_OF_RECORD],
+        ]
+    ).astype(np.float32)
     return _RecordTables(
         block_t_offset_ns=(firing_block[:, 0] * m.BLOCK_NS).astype(np.int64),
         t_in_block_ns=_T_IN_BLOCK_NS.astype(np.int64),
         laser=laser,
-        laser_items=laser.view(_ITEM16),
-        tail=np.broadcast_to(tail, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK)).astype("<u4"),
+        tail=np.broadcast_to(tail, (m.BLOCKS_PER_PACKET, m.RECORDS_PER_BLOCK)).astype(
+            "<u4",
+            order="C",  # one layout (and one compiled kernel) whatever the mode
+        ),
     )
 
 
@@ -122,13 +120,15 @@ def valid_packets(packets: np.ndarray) -> np.ndarray:
     return flags_ok & azimuth_ok & mode_ok
 
 
-def azimuths_in_range(packets: np.ndarray) -> np.ndarray:
-    """Per packet: all 12 block azimuths in 0..36000 (the part of `valid_packets` that a
-    per-packet check of the flags and return mode leaves)."""
-    azimuth = packets["blocks"]["azimuth"]
-    if azimuth.max(initial=0) <= 36000:  # the usual case, in one reduction
+def blocks_intact(packets: np.ndarray) -> np.ndarray:
+    """Per packet: all 12 block flags are FF EE and all azimuths in 0..36000 (the part of
+    `valid_packets` that the batcher's per-packet check of the header, the first and
+    the last block's flags leaves)."""
+    blocks = packets["blocks"]
+    flag, azimuth = blocks["flag"], blocks["azimuth"]
+    if (flag == m.BLOCK_FLAG).all() and azimuth.max(initial=0) <= 36000:  # the usual case
         return np.ones(len(packets), dtype=bool)
-    return (azimuth <= 36000).all(axis=1)
+    return (flag == m.BLOCK_FLAG).all(axis=1) & (azimuth <= 36000).all(axis=1)
 
 
 def resolve_hour(toh_us: np.ndarray, t_ref_ns: np.ndarray) -> np.ndarray:
@@ -175,84 +175,82 @@ def lidar_publish_time(payload: bytes, t_host: int) -> int:
     return int(resolve_hour(np.array([toh_us]), np.array([t_host]))[0])
 
 
-def _rotation_rate(azimuth: np.ndarray, dual: bool) -> np.ndarray:
-    """Per packet: rotation in centidegrees per firing block, from the azimuth of its
-    first to that of its last firing block (unwrapped across 0). One rate per packet
-    averages out the 0.01 deg quantisation of each block's azimuth."""
-    firings = m.BLOCKS_PER_PACKET // 2 if dual else m.BLOCKS_PER_PACKET
-    last = m.BLOCKS_PER_PACKET - (2 if dual else 1)  # in dual return: block 10
-    sweep = (azimuth[:, last].astype(np.int32) - azimuth[:, 0]) % 36000
-    return (sweep / (firings - 1)).astype(np.float32)
+# The kernels' constants (numba freezes module globals when it compiles).
+_BLOCK_BYTES = 100  # flag (2), azimuth (2), 32 records of distance (2) and reflectivity (1)
+_DISTANCE_UNIT = np.float32(m.DISTANCE_UNIT_M)
+_FULL_TURN = np.float32(36000)  # centidegrees
+_TO_RADIANS = np.float32(np.pi / 18000)
 
 
-class _Scratch(threading.local):
-    """A thread's work memory, kept from one decode to the next: a buffer per name.
-    A scan's temporaries are large (a dual-return scan's grids hold 58,000 records);
-    fresh ones are faulted in page by page, and freed after every scan they often go
-    back to the system to be faulted in again (bench/decode.py, dual return: about 56
-    page faults a scan before every temporary had its buffer)."""
-
-    def __init__(self) -> None:
-        self.buffers: dict[str, np.ndarray] = {}
-
-
-_SCRATCH = _Scratch()  # threads decode at once; calls within one never overlap
-# A thread keeps buffers of at most this many bytes each (an int64 per record of 512
-# packets, about 1.6 MB; a 5 Hz dual-return scan has 302 packets); larger get their own.
-_SCRATCH_MAX_BYTES = 8 * 512 * m.BLOCKS_PER_PACKET * m.RECORDS_PER_BLOCK
-_BOOL, _UINT16, _INT64, _FLOAT32 = (np.dtype(t) for t in (bool, np.uint16, np.int64, np.float32))
-_WORD = np.dtype("<u4")
+@kernel
+def _count_returns(raw: np.ndarray) -> int:
+    """Records with a return (distance not 0) in (packets, 1206) payload bytes."""
+    count = 0
+    for k in range(raw.shape[0]):
+        for first in range(4, 1200, _BLOCK_BYTES):  # a block's records after its flag, azimuth
+            for o in range(first, first + 96, 3):
+                if raw[k, o] | raw[k, o + 1]:
+                    count += 1
+    return count
 
 
-def _work(name: str, count: int, dtype: np.dtype) -> np.ndarray:
-    """`count` uninitialised items of `dtype` from the thread's buffer `name` when they
-    fit under its cap. Called a dozen times a scan: one dict look-up and a slice."""
-    memory = _SCRATCH.buffers.get(name)
-    if memory is None or memory.dtype is not dtype or len(memory) < count:
-        if count * dtype.itemsize > _SCRATCH_MAX_BYTES:
-            return np.empty(count, dtype=dtype)
-        spare = count // 4  # scans differ by a packet or two
-        memory = np.empty(min(count + spare, _SCRATCH_MAX_BYTES // dtype.itemsize), dtype)
-        _SCRATCH.buffers[name] = memory
-    return memory[:count]
-
-
-def _block_terms(
-    packets: np.ndarray, t_packet_ns: np.ndarray, dual: bool, tables: _RecordTables
-) -> np.ndarray:
-    """(packets x 12,) `_BLOCK_TERMS` as plain 16-byte items: each block's azimuth
-    (centidegrees), its packet's rotation rate and the block's first firing time."""
-    azimuth = packets["blocks"]["azimuth"]
-    items = _work("block_terms", azimuth.size, _ITEM16)
-    terms = items.view(_BLOCK_TERMS).reshape(azimuth.shape)
-    terms["azimuth"] = azimuth  # uint16 to float32 is exact
-    terms["rate"] = _rotation_rate(azimuth, dual)[:, None]
-    t_packet = np.asarray(t_packet_ns, dtype=np.int64)[:, None]
-    np.add(t_packet, tables.block_t_offset_ns, out=terms["t_ns"])
-    return items
-
-
-def _tail_grid(
-    records: np.ndarray, distance: np.ndarray, dual: bool, tables: _RecordTables
-) -> np.ndarray:
-    """Tail words, flat, one per record: reflectivity, ring, return type and the
-    duplicate flag. `distance` is the (packets, 12, 32) grid."""
-    words = _work("tail", distance.size, _WORD)
-    grid = words.reshape(distance.shape)
-    grid[...] = tables.tail
-    tail_bytes = words.view(np.uint8).reshape(*distance.shape, 4)
-    tail_bytes[..., 0] = records["reflectivity"]
-    if dual:
-        # A single echo is reported by both blocks of the pair: flag the repeat.
-        np.equal(distance[:, 1::2], distance[:, 0::2], out=tail_bytes[:, 1::2, :, 3].view(bool))
-    return words
-
-
-def _gather(name: str, items: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """`items[index]` (`items` flat) into the thread's buffer `name`."""
-    out = _work(name, len(index), items.dtype)
-    np.take(items, index, out=out, mode="clip")  # indices in range: no checking copy
-    return out
+@kernel
+def _fill_points(raw, t_packet, dual, block_t_offset, t_in_block, laser, tail, floats, words,
+                 horizontal, azimuth):  # fmt: skip
+    """One pass over the records of (packets, 1206) payload bytes, in packet, block,
+    record order, skipping distance 0: each point's time, z, azimuth (radians) and tail
+    word into its fields (`floats` and `words`: the points as (points, 7) words), its
+    horizontal range and azimuth again into the contiguous `horizontal` and `azimuth`
+    for the trigonometry NumPy does after. The arithmetic is in float32, as
+    the fields are. Returns how many points are flagged duplicate."""
+    firings = 6 if dual else 12  # firing blocks a packet: in dual, pairs of blocks
+    last = 10 if dual else 11  # the last firing block's first block
+    fraction, cos_elevation, sin_elevation, z_offset = laser[0], laser[1], laser[2], laser[3]
+    point = 0
+    duplicates = 0
+    for k in range(raw.shape[0]):
+        first_azimuth = np.int32(raw[k, 2]) | (np.int32(raw[k, 3]) << 8)
+        last_azimuth = np.int32(raw[k, _BLOCK_BYTES * last + 2]) | (
+            np.int32(raw[k, _BLOCK_BYTES * last + 3]) << 8
+        )
+        # Centidegrees per firing block, from the first to the last (unwrapped across 0).
+        rate = np.float32(((last_azimuth - first_azimuth) % 36000) / (firings - 1))
+        for b in range(12):
+            offset = _BLOCK_BYTES * b
+            block_azimuth = np.float32(
+                np.int32(raw[k, offset + 2]) | (np.int32(raw[k, offset + 3]) << 8)
+            )
+            t_block = t_packet[k] + block_t_offset[b]
+            strongest_of_pair = dual and b % 2 == 1
+            for j in range(32):
+                o = offset + 4 + 3 * j
+                distance = np.int32(raw[k, o]) | (np.int32(raw[k, o + 1]) << 8)
+                if distance == 0:
+                    continue
+                word = tail[b, j] | np.uint32(raw[k, o + 2])
+                if strongest_of_pair:
+                    # A single echo is reported by both blocks of the pair: flag the repeat.
+                    paired = np.int32(raw[k, o - _BLOCK_BYTES]) | (
+                        np.int32(raw[k, o - _BLOCK_BYTES + 1]) << 8
+                    )
+                    if distance == paired:
+                        word |= np.uint32(1 << 24)
+                        duplicates += 1
+                words[point, _TAIL] = word
+                t = t_block + t_in_block[j]
+                words[point, _T_LOW] = np.uint32(t & 0xFFFFFFFF)  # little-endian int64
+                words[point, _T_HIGH] = np.uint32((t >> 32) & 0xFFFFFFFF)
+                rng = np.float32(distance) * _DISTANCE_UNIT
+                horizontal[point] = rng * cos_elevation[j]
+                floats[point, _Z] = rng * sin_elevation[j] + z_offset[j]
+                centidegrees = rate * fraction[j] + block_azimuth
+                if centidegrees >= _FULL_TURN:
+                    centidegrees -= _FULL_TURN
+                radians = centidegrees * _TO_RADIANS
+                floats[point, _AZIMUTH] = radians
+                azimuth[point] = radians
+                point += 1
+    return duplicates
 
 
 def decode_packets(
@@ -271,57 +269,45 @@ def decode_packets(
 def decode_counting_duplicates(
     packets: np.ndarray, t_packet_ns: np.ndarray, optics: m.LaserModel
 ) -> tuple[np.ndarray, int]:
-    """`decode_packets`, and how many of the points are flagged `duplicate` (counted on
-    the decoder's own contiguous copy: the points' flags are 28 bytes apart).
+    """`decode_packets`, and how many of the points are flagged `duplicate`.
 
-    The records with a return are found first; each point then gathers what it needs
-    from its block and its record j (two 16-byte gathers) and from the distance and
-    tail grids, and each field is written once into the output. The temporaries live
-    in the thread's work memory.
+    Two compiled passes over the payload bytes: one counts the records with a return, the
+    other writes each point's fields but x and y in place. The azimuth's cosine and
+    sine are NumPy's, on the contiguous azimuths the second pass leaves.
     """
     if len(packets) == 0:
         return np.empty(0, dtype=POINT_DTYPE), 0
     mode = int(packets["return_mode"][0])
     dual = mode == m.RETURN_DUAL
-    tables = _record_tables(dual, mode == m.RETURN_LAST, optics)
-    records = packets["blocks"]["records"]
-    distances = _work("distance", records.size, _UINT16)
-    distance = distances.reshape(records.shape)
-    np.copyto(distance, records["distance"])
-    # A bool mask first: flatnonzero on the uint16 distances directly is 4x slower.
-    has_return = _work("mask", distance.size, _BOOL).reshape(distance.shape)
-    np.not_equal(distance, 0, out=has_return)
-    index = np.flatnonzero(has_return)
-    count = len(index)
+    raw = np.ascontiguousarray(packets).view(np.uint8).reshape(len(packets), m.DATA_PACKET_SIZE)
+    count = _count_returns(raw)
     points = np.empty(count, dtype=POINT_DTYPE)
-
-    where = _work("where", count, _INT64)
-    block_terms = _block_terms(packets, t_packet_ns, dual, tables)
-    block_of_point = np.right_shift(index, _RECORD_SHIFT, out=where)
-    block = _gather("block", block_terms, block_of_point).view(_BLOCK_TERMS)
-    record = np.bitwise_and(index, _RECORD_BITS, out=where)
-    laser = _gather("laser", tables.laser_items, record).view(_LASER_TERMS)
-    t = _gather("t", tables.t_in_block_ns, record)
-    np.add(block["t_ns"], t, out=points["t"])
-    tail = _gather("tail_point", _tail_grid(records, distance, dual, tables), index)
-    points.view(_TAIL_VIEW)["tail"] = tail
-    duplicates = 0
-    if dual:  # only dual return repeats an echo; the flag is the word's top byte
-        flagged = np.greater_equal(tail, 1 << 24, out=_work("flagged", count, _BOOL))
-        duplicates = int(np.count_nonzero(flagged))
-
-    rng = _work("range", count, _FLOAT32)
-    np.multiply(_gather("distance_point", distances, index), np.float32(m.DISTANCE_UNIT_M), out=rng)
-    horizontal = np.multiply(rng, laser["cos_elevation"], out=_work("horizontal", count, _FLOAT32))
-    z = np.multiply(rng, laser["sin_elevation"], out=rng)
-    np.add(z, laser["z_m"], out=points["z"])
-
-    centideg = np.multiply(block["rate"], laser["fraction"], out=_work("azimuth", count, _FLOAT32))
-    np.add(centideg, block["azimuth"], out=centideg)
-    np.subtract(centideg, 36000, out=centideg, where=centideg >= 36000)
-    azimuth = np.multiply(centideg, np.float32(np.pi / 18000), out=centideg)
-    points["azimuth"] = azimuth
-    trig = _work("trig", count, _FLOAT32)
-    np.multiply(horizontal, np.cos(azimuth, out=trig), out=points["x"])
+    if count == 0:  # (empty fields would also be typed, and compiled for, anew)
+        return points, 0
+    horizontal = np.empty(count, dtype=np.float32)
+    azimuth = np.empty(count, dtype=np.float32)
+    duplicates = _fill_points(
+        raw,
+        np.ascontiguousarray(t_packet_ns, dtype=np.int64),
+        dual,
+        *_record_tables(dual, mode == m.RETURN_LAST, optics).kernel_args(),
+        points.view(np.float32).reshape(count, _WORDS),
+        points.view(np.uint32).reshape(count, _WORDS),
+        horizontal,
+        azimuth,
+    )
+    trig = np.cos(azimuth)
+    np.multiply(horizontal, trig, out=points["x"])
     np.multiply(np.negative(horizontal, out=horizontal), np.sin(azimuth, out=trig), out=points["y"])
-    return points, duplicates
+    return points, int(duplicates)
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The decoding kernels compiled for the argument types a scan gives them
+    (read-only packet bytes, as received), by decoding two packets of returns."""
+    packets = np.zeros(2, dtype=PACKET_DTYPE)
+    packets["blocks"]["flag"] = m.BLOCK_FLAG
+    packets["blocks"]["records"]["distance"] = 1
+    packets["return_mode"] = m.RETURN_STRONGEST
+    decode_packets(view_packets(packets.tobytes()), np.zeros(2, dtype=np.int64), m.VLP16)

@@ -1,0 +1,91 @@
+"""`treetraits.jit.kernel`: kernels cached where NUMBA_CACHE_DIR says (the systemd unit's
+CacheDirectory) and loaded from there by the next process; compiled in memory where no
+cache can be kept."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from treetraits.jit import kernel
+
+_COMPILE_DECODER = """
+from treetraits.drivers.velodyne import packet
+packet.compile_kernels()
+stats = packet._fill_points.stats
+print(sum(stats.cache_hits.values()), sum(stats.cache_misses.values()), stats.cache_path)
+"""
+
+
+def test_kernels_are_cached_in_numba_cache_dir_and_loaded_from_it(tmp_path):
+    cache = tmp_path / "numba"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    outputs = []
+    for _ in range(2):
+        run = subprocess.run(
+            [sys.executable, "-c", _COMPILE_DECODER],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert run.returncode == 0, run.stderr
+        outputs.append(run.stdout.split())
+    (hits, misses, path), (hits_after, misses_after, path_after) = outputs
+    assert (hits, misses) == ("0", "1")  # compiled, and written to the cache
+    assert (hits_after, misses_after) == ("1", "0")  # the next process loads it
+    assert path == path_after and path.startswith(str(cache))
+    assert list(cache.rglob("packet._fill_points-*.nbi"))
+
+
+def test_a_kernel_without_a_cache_location_is_compiled_in_memory():
+    namespace = {"kernel": kernel}
+    source = "@kernel\ndef total(a):\n    s = 0\n    for x in a:\n        s += x\n    return s\n"
+    exec(compile(source, "<typed at a prompt>", "exec"), namespace)  # no file: no cache
+    assert namespace["total"](np.arange(10)) == 45
+
+
+_SERVICE_WARM_UP = """
+import importlib, sys
+from treetraits.service.runtime import PIPELINE_MODULES
+from treetraits import jit
+for module in PIPELINE_MODULES:
+    importlib.import_module(module)
+jit.compile_all()  # what the service does before READY
+for module in sys.argv[1:]:  # every module that makes kernels, imported now if not yet
+    importlib.import_module(module)
+print(*(f"{k.py_func.__module__}.{k.__name__}" for k in jit.KERNELS if not k.signatures))
+"""
+
+
+def _modules_with_kernels() -> list[str]:
+    repo = Path(__file__).resolve().parents[1]
+    modules = []
+    for folder in ("drivers", "pipeline", "service", "sim", "firmware_bridge", "treetraits"):
+        for path in (repo / folder).rglob("*.py"):
+            if "\n@kernel" in path.read_text():
+                parts = path.relative_to(repo).with_suffix("").parts
+                prefix = () if parts[0] == "treetraits" else ("treetraits",)
+                modules.append(".".join(prefix + parts))
+    return modules
+
+
+def test_the_service_compiles_every_kernel_before_ready():
+    """A kernel left to compile at its first call would hold the service's first scans
+    for a second or more: every module with kernels is among (or imported by) the
+    modules the service imports before READY, and registers a warm-up that reaches
+    each of its kernels."""
+    modules = _modules_with_kernels()
+    assert "treetraits.drivers.velodyne.packet" in modules
+    run = subprocess.run(
+        [sys.executable, "-c", _SERVICE_WARM_UP, *modules],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "", f"not compiled before READY: {run.stdout}"
