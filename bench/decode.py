@@ -1,7 +1,7 @@
 """Decode speed: our VLP-16 decoder against velodyne_decoder, same packets, same process.
 
 Both decoders get every data packet of a real capture from memory, one push per packet,
-and return every scan (ours: `ScanBatcher.push`, vectorised per scan; theirs:
+and return every scan (ours: `ScanBatcher.push`, compiled passes per scan; theirs:
 `StreamDecoder.decode`, C++ behind pybind11). Several interleaved rounds; medians.
 
 Last line, exactly: `decode_vs_velodyne_decoder=R realtime=X`, where R = our throughput /

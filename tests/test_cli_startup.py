@@ -1,5 +1,5 @@
 """The command line starts without loading the heavy libraries: `--help` of the program and
-of every command imports no open3d, SciPy, filterpy, OpenCV, pyproj, MCAP or NumPy (they
+of every command imports no open3d, SciPy, filterpy, OpenCV, pyproj, MCAP, numba or NumPy (they
 are imported by the code that uses them). Behaviour, not timing: bench/replay.py times it.
 """
 
@@ -14,7 +14,7 @@ from treetraits.cli import build_parser
 
 HEAVY = (
     "open3d", "scipy", "filterpy", "cv2", "pyproj", "mcap", "numpy", "matplotlib", "dask",
-    "distributed",
+    "distributed", "numba",
 )  # fmt: skip
 
 

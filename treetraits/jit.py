@@ -2,10 +2,13 @@
 decorator every kernel is made with, so that all compile, cache and fail alike.
 
 A kernel is compiled on its first call for that call's argument types (about half a
-second each; a new combination of types or array layouts compiles again) and kept on disk by numba's cache: in NUMBA_CACHE_DIR when it is set (the
-systemd unit points it into its CacheDirectory), else in the `__pycache__` beside the
-module when that is writable, else in the user's cache directory. Where none of these
-can be written (source that is not a file), it is compiled in memory at every start.
+second each; a new combination of types or array layouts compiles again), and kept on
+disk by numba's cache: in NUMBA_CACHE_DIR when it is set (the systemd unit points it into
+its CacheDirectory), else in the `__pycache__` beside the module when that is writable,
+else in the user's cache directory. Where none of these can be written (source that is
+not a file), it is compiled in memory at every start. A module with kernels registers a
+`warm_up` that calls them as real data would; the service runs them all (`compile_all`)
+before READY.
 
 Compiling needs memory that is first written and then made executable, which a process
 under MemoryDenyWriteExecute (systemd) or PR_SET_MDWE refuses: `import numba` then fails,
