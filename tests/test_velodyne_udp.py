@@ -265,3 +265,30 @@ def test_a_second_reader_on_the_same_port_is_refused():
             UdpSource(host="127.0.0.1", port=first.ports[0], telemetry_port=None)
     finally:
         first.close()
+
+
+def test_a_packet_carries_its_arrival_time_not_the_read_time(veloview):
+    """`t_host` is the kernel's receive stamp: a reader that gets round to a packet late
+    (a busy process, a burst read) still places it when it arrived."""
+    packets, _ = veloview
+    source = UdpSource("127.0.0.1", 0, telemetry_port=None)
+    try:
+        assert source.kernel_timestamps
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            sent = []
+            for packet in [p for p in packets if p.is_data][:10]:
+                before = time.time_ns()
+                tx.sendto(packet.payload, ("127.0.0.1", source.ports[0]))
+                sent.append((before, time.time_ns(), packet.payload))
+                time.sleep(0.002)
+        time.sleep(0.2)
+        first = source.read(timeout=1.0)
+        read_at = time.time_ns()
+        assert source.pending == 9  # the rest of the burst, read in the same wake-up
+        received = [first] + [source.read(timeout=1.0) for _ in range(9)]
+    finally:
+        source.close()
+    assert [p.payload for p in received] == [payload for _, _, payload in sent]
+    for packet, (before, after, _) in zip(received, sent, strict=True):
+        assert before <= packet.t_host <= after  # loopback: stamped within sendto()
+    assert read_at - received[-1].t_host > 150_000_000  # read 0.2 s later

@@ -16,9 +16,11 @@ import selectors
 import socket
 import struct
 import time
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from decimal import Decimal
+from operator import attrgetter
 from pathlib import Path
 from typing import Protocol
 from urllib.parse import parse_qs, urlsplit
@@ -32,6 +34,12 @@ from treetraits.errors import SourceError
 DEFAULT_RCVBUF = 8 * 1024 * 1024  # ~5 s of dual-return traffic; the kernel caps it at rmem_max
 _CLOSE_POLL_S = 0.5
 _SO_RXQ_OVFL = 40  # Linux: per-socket count of datagrams dropped for a full buffer
+# Linux: each datagram carries the realtime clock of its arrival in the kernel (a struct
+# timespec, two native longs). The same for SCM_TIMESTAMPNS; not in Python's socket module.
+_SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("=qq")
+_ANCILLARY_BYTES = socket.CMSG_SPACE(4) + socket.CMSG_SPACE(_TIMESPEC.size)
+_DRAIN_MAX = 256  # datagrams read in one go after a wake-up (1/3 s of data packets)
 
 _PCAP_MAGICS = {b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1", b"\xa1\xb2\x3c\x4d"}
 _PCAPNG_MAGIC = b"\x0a\x0d\x0d\x0a"
@@ -274,6 +282,12 @@ class UdpSource:
     `effective_rcvbuf`) and `SO_RXQ_OVFL`, so drops in the kernel are counted, not guessed.
     With `sensor_ip` set, datagrams from any other address are foreign and skipped.
     Iteration blocks in `select` (no busy loop) and ends when `close()` is called.
+
+    A packet's `t_host` is when the kernel received it (`SO_TIMESTAMPNS`, the realtime
+    clock), not when this thread got round to reading it: a reader held up by a busy
+    process (the GIL) does not move the scan's time, and may read in bursts
+    (`kernel_timestamps`; without them, `time.time_ns()` at the read). After a wake-up
+    every datagram already queued is read at once (`pending`).
     """
 
     is_live = True
@@ -296,6 +310,8 @@ class UdpSource:
         self._sockets: list[socket.socket] = []
         self._closed = False
         self._kernel_drops: dict[int, int] = {}
+        self._pending: deque[LidarPacket] = deque()
+        self.kernel_timestamps = True  # until a socket refuses them
         try:
             for p in (port, telemetry_port):
                 if p is not None:
@@ -310,14 +326,17 @@ class UdpSource:
         for sock in self._sockets:
             self._selector.register(sock, selectors.EVENT_READ)
 
-    @staticmethod
-    def _bind(host: str, port: int, rcvbuf: int) -> socket.socket:
+    def _bind(self, host: str, port: int, rcvbuf: int) -> socket.socket:
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_DGRAM)
         # No SO_REUSEADDR: a second reader on the port must fail loudly, not share it.
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
         with contextlib.suppress(OSError):  # not on every kernel
             sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        except OSError:
+            self.kernel_timestamps = False
         sock.bind((host, port))
         sock.setblocking(False)
         return sock
@@ -332,8 +351,15 @@ class UdpSource:
         """The receive buffer the kernel granted (it doubles the request, capped at rmem_max)."""
         return self._sockets[0].getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
 
+    @property
+    def pending(self) -> int:
+        """Packets read from the sockets and not yet returned by `read`."""
+        return len(self._pending)
+
     def read(self, timeout: float | None = None) -> LidarPacket | None:
         """The next accepted packet, or None when `timeout` seconds pass without one."""
+        if self._pending:
+            return self._pending.popleft()
         deadline = None if timeout is None else time.monotonic() + timeout
         while not self._closed:
             # Wait in slices so a close() from another thread ends even an unbounded read.
@@ -347,25 +373,41 @@ class UdpSource:
                     return None  # closed by another thread while we were about to wait
                 raise
             for key, _ in events:
-                packet = self._receive(key.fileobj)
-                if packet is not None:
-                    return packet
+                self._drain(key.fileobj)
+            if self._pending:
+                if len(events) > 1:  # data and telemetry: one stream in arrival order
+                    self._pending = deque(sorted(self._pending, key=attrgetter("t_host")))
+                return self._pending.popleft()
             if deadline is not None and time.monotonic() >= deadline:
                 return None
         return None
 
-    def _receive(self, sock) -> LidarPacket | None:
-        try:
-            payload, ancillary, _flags, address = sock.recvmsg(2048, socket.CMSG_SPACE(4))
-        except (BlockingIOError, InterruptedError):
-            return None
-        except OSError:
-            return None  # closed under us
-        t_host = time.time_ns()
+    def _drain(self, sock) -> None:
+        """Every datagram queued on `sock` (up to `_DRAIN_MAX`), accepted ones to `_pending`."""
+        for _ in range(_DRAIN_MAX):
+            try:
+                payload, ancillary, _flags, address = sock.recvmsg(2048, _ANCILLARY_BYTES)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return  # closed under us
+            packet = self._accept(sock, payload, ancillary, address)
+            if packet is not None:
+                self._pending.append(packet)
+
+    def _accept(self, sock, payload: bytes, ancillary, address) -> LidarPacket | None:
+        t_host = None
         for level, kind, data in ancillary:
-            if level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL and len(data) >= 4:
+            if level != socket.SOL_SOCKET:
+                continue
+            if kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+                t_host = seconds * 1_000_000_000 + nanoseconds
+            elif kind == _SO_RXQ_OVFL and len(data) >= 4:
                 self._kernel_drops[sock.fileno()] = struct.unpack("=I", data[:4])[0]
                 self.stats.kernel_drops = sum(self._kernel_drops.values())
+        if t_host is None:
+            t_host = time.time_ns()
         if self.sensor_ip is not None and address[0] != self.sensor_ip:
             self.stats.foreign += 1
             return None
