@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from treetraits.jit import kernel, warm_up
 from treetraits.pipeline.config import TerrainConfig
 
 
@@ -46,27 +47,20 @@ class TerrainGrid:
 
     def z_at(self, x, y) -> np.ndarray | float:
         """Ground height at (x, y), bilinear between cell centres (clamped at the edge)."""
-        fx = (np.asarray(x, dtype=float) - self.x0) / self.cell - 0.5
-        fy = (np.asarray(y, dtype=float) - self.y0) / self.cell - 0.5
-        nx, ny = self.z.shape
-        fx = np.clip(fx, 0.0, nx - 1.0)
-        fy = np.clip(fy, 0.0, ny - 1.0)
-        i = np.minimum(fx.astype(np.int64), nx - 2) if nx > 1 else np.zeros_like(fx, np.int64)
-        j = np.minimum(fy.astype(np.int64), ny - 2) if ny > 1 else np.zeros_like(fy, np.int64)
-        tx, ty = fx - i, fy - j
-        i1, j1 = np.minimum(i + 1, nx - 1), np.minimum(j + 1, ny - 1)
-        # The same products in the same order; 1 - t once each and the corners read from
-        # the flat grid (cheaper than 2-D fancy indexing).
-        z = self.z.ravel()
-        sx, sy = 1 - tx, 1 - ty
-        row, row1 = i * ny, i1 * ny
-        out = (
-            z[row + j] * sx * sy
-            + z[row1 + j] * tx * sy
-            + z[row + j1] * sx * ty
-            + z[row1 + j1] * tx * ty
+        x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+        out = np.empty(x.shape)
+        _bilinear(
+            _c_float64(self.z).ravel(),
+            self.z.shape[0],
+            self.z.shape[1],
+            float(self.x0),
+            float(self.y0),
+            float(self.cell),
+            _c_float64(x).ravel(),
+            _c_float64(y).ravel(),
+            out.reshape(-1),
         )
-        return float(out) if np.ndim(out) == 0 else out
+        return float(out) if out.ndim == 0 else out
 
     def height(self, xyz: np.ndarray) -> np.ndarray:
         """Height of each point above the terrain under it (m)."""
@@ -75,6 +69,45 @@ class TerrainGrid:
     @property
     def ground_cells(self) -> int:
         return int(self.ground.sum())
+
+
+def _c_float64(values: np.ndarray) -> np.ndarray:
+    """`values` as a writable C-ordered float64 array, copied only when it is not one: the
+    one layout the kernels are compiled for (numba compiles anew for readonly or strided)."""
+    flags = values.flags
+    if values.dtype == np.float64 and flags.c_contiguous and flags.writeable:
+        return values
+    return np.array(values, dtype=np.float64, order="C")
+
+
+@kernel
+def _bilinear(z, nx, ny, x0, y0, cell, x, y, out):
+    """`out[k]`: the (nx, ny) grid `z` (flat) at (x[k], y[k]), bilinear between the cell
+    centres and clamped at the edge, with NumPy's steps: the same products in the same
+    order. A NaN coordinate gives NaN."""
+    for k in range(x.shape[0]):
+        fx = (x[k] - x0) / cell - 0.5
+        fy = (y[k] - y0) / cell - 0.5
+        if np.isnan(fx) or np.isnan(fy):
+            out[k] = np.nan
+            continue
+        # np.clip's max then min (a -0.0 stays as NumPy leaves it)
+        fx = fx if fx > 0.0 else 0.0
+        fx = fx if fx < nx - 1.0 else nx - 1.0
+        fy = fy if fy > 0.0 else 0.0
+        fy = fy if fy < ny - 1.0 else ny - 1.0
+        i = min(np.int64(fx), nx - 2) if nx > 1 else 0
+        j = min(np.int64(fy), ny - 2) if ny > 1 else 0
+        tx, ty = fx - i, fy - j
+        i1, j1 = min(i + 1, nx - 1), min(j + 1, ny - 1)
+        sx, sy = 1 - tx, 1 - ty
+        row, row1 = i * ny, i1 * ny
+        out[k] = (
+            z[row + j] * sx * sy
+            + z[row1 + j] * tx * sy
+            + z[row + j1] * sx * ty
+            + z[row1 + j1] * tx * ty
+        )
 
 
 def fit_terrain(
@@ -120,22 +153,39 @@ def _seeds(lowest, observed, distance, config: TerrainConfig) -> np.ndarray:
 def _lowest_layer(xyz, config: TerrainConfig, x0, y0, nx, ny) -> np.ndarray:
     """Per cell, the mean height of the returns within `lowest_layer_m` of the cell's
     lowest (the minimum alone sits ~2 sigma of range noise low); NaN where no return."""
-    c = config.cell_m
-    i = np.floor((xyz[:, 0] - x0) / c).astype(np.int64)
-    j = np.floor((xyz[:, 1] - y0) / c).astype(np.int64)
-    inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
-    cell, z = i * ny + j, xyz[:, 2]
-    if not inside.all():  # the cropped points are inside but on the box's far edges
-        cell, z = cell[inside], z[inside]
-    lowest = np.full(nx * ny, np.inf)
-    np.minimum.at(lowest, cell, z)
-    layer = z <= lowest[cell] + config.lowest_layer_m
-    cell = cell[layer]
-    total = np.bincount(cell, weights=z[layer], minlength=nx * ny)
-    count = np.bincount(cell, minlength=nx * ny)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    mean = np.empty(nx * ny)
+    _lowest_layer_mean(
+        _c_float64(xyz), float(x0), float(y0), float(config.cell_m), nx, ny,
+        float(config.lowest_layer_m), mean,
+    )  # fmt: skip
     return mean.reshape(nx, ny)
+
+
+@kernel
+def _lowest_layer_mean(xyz, x0, y0, cell, nx, ny, layer_m, mean):
+    """`_lowest_layer` into `mean` (nx * ny): each point's cell, the cells' minimum, then
+    the layer's sums in point order (as np.bincount adds its weights)."""
+    n = xyz.shape[0]
+    cell_of = np.full(n, -1, dtype=np.int64)  # -1: outside the grid
+    lowest = np.full(nx * ny, np.inf)
+    for k in range(n):
+        fi = np.floor((xyz[k, 0] - x0) / cell)
+        fj = np.floor((xyz[k, 1] - y0) / cell)
+        if fi >= 0 and fi < nx and fj >= 0 and fj < ny:  # False for NaN, as NumPy's
+            c = np.int64(fi) * ny + np.int64(fj)
+            cell_of[k] = c
+            z = xyz[k, 2]
+            if np.isnan(z) or z < lowest[c]:  # np.minimum: NaN wins
+                lowest[c] = z
+    total = np.zeros(nx * ny)
+    count = np.zeros(nx * ny, dtype=np.int64)
+    for k in range(n):
+        c = cell_of[k]
+        if c >= 0 and xyz[k, 2] <= lowest[c] + layer_m:
+            total[c] += xyz[k, 2]
+            count[c] += 1
+    for c in range(nx * ny):
+        mean[c] = total[c] / count[c] if count[c] > 0 else np.nan
 
 
 def _grow(lowest, observed, ground, accepted, config: TerrainConfig) -> np.ndarray:
@@ -234,3 +284,14 @@ def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float)
             out[np.isnan(out)] = 0.0  # nothing known at all: the footprint's plane
         sigma *= 2
     return out
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The terrain's kernels compiled for the types a scan gives them, by fitting a
+    terrain to a few made-up points and reading heights off it."""
+    xyz = np.array([[0.2, 0.1, -0.4], [1.0, -0.6, -0.38], [-0.7, 0.3, -0.41]])
+    TerrainGrid(
+        -1.0, -1.0, 0.5, np.zeros((4, 4)), np.ones((4, 4), bool), np.ones((4, 4), bool)
+    ).height(xyz)
+    _lowest_layer(xyz, TerrainConfig(), -1.0, -1.0, 4, 4)
