@@ -195,31 +195,81 @@ def _grow(lowest, observed, ground, accepted, config: TerrainConfig) -> np.ndarr
     skirt is judged against the ground beside it, not against ground beyond a gap."""
     from scipy import ndimage
 
+    if not accepted.any():  # nothing to grow from: no cell is taken
+        return np.full(lowest.shape, np.nan)
     c = config.cell_m
+    lowest = _c_float64(lowest)
+    ground = np.array(ground, dtype=np.float64, order="C")  # grown in place, as are:
+    accepted = np.array(accepted, dtype=bool, order="C")
     pending = observed & ~accepted
     window = max(3, 2 * round(config.support_radius_m / c) + 1)
+    gap = np.empty(lowest.shape)
+    candidate = np.empty(lowest.shape, dtype=bool)
     for _ in range(4 * max(lowest.shape)):
-        gap, (near_i, near_j) = ndimage.distance_transform_edt(~accepted, return_indices=True)
-        gap = gap * c
-        step = lowest - ground[near_i, near_j]
-        allowance = config.step_tolerance_m + config.max_slope * gap
-        take = pending & (gap <= config.max_gap_m) & (np.abs(step) <= allowance)
-        # The lowest first: a candidate more than the tolerance above the lowest
-        # candidate within the support radius waits until that one is ground and it can
-        # be compared (a skirt's ring waits for the trunk's foot inside it).
-        lowest_around = ndimage.minimum_filter(np.where(take, lowest, np.inf), size=window)
-        take &= lowest <= lowest_around + config.step_tolerance_m
-        # Across a gap in the rings' coverage, ground comes as a patch (a ring's arc):
-        # a lone low cell out there is a trunk or a post seen by a level ring.
-        around = ndimage.uniform_filter(take.astype(float), window, mode="constant")
-        support = np.rint(around * window * window) - 1  # the others in the window
-        take &= (gap <= 2 * c) | (support >= config.min_support_cells)
-        if not take.any():
+        # The nearest accepted cell of every cell (scipy's choice among equally near ones).
+        nearest = ndimage.distance_transform_edt(
+            ~accepted, return_distances=False, return_indices=True
+        )
+        grew = _grow_once(
+            lowest, ground, accepted, pending, nearest, gap, candidate, float(c),
+            float(config.step_tolerance_m), float(config.max_slope), float(config.max_gap_m),
+            int(config.min_support_cells), window // 2,
+        )  # fmt: skip
+        if not grew:
             break
-        ground = np.where(take, lowest, ground)
-        accepted = accepted | take
-        pending &= ~take
     return np.where(accepted, ground, np.nan)
+
+
+@kernel
+def _grow_once(lowest, ground, accepted, pending, nearest, gap, candidate, cell, tolerance,
+               max_slope, max_gap, min_support, radius):  # fmt: skip
+    """One round of `_grow` over the (nx, ny) grid: the pending cells that continue their
+    nearest accepted ground (`nearest`: its indices, as scipy's distance transform gives
+    them) are taken, lowest first and in patches across gaps, into `ground`, `accepted`
+    and `pending` (in place). Returns whether any was. `gap`, `candidate`: scratch."""
+    nx, ny = lowest.shape
+    for i in range(nx):
+        for j in range(ny):
+            candidate[i, j] = False
+            if pending[i, j]:
+                ni, nj = nearest[0, i, j], nearest[1, i, j]
+                di, dj = np.float64(ni - i), np.float64(nj - j)
+                gap[i, j] = np.sqrt(di * di + dj * dj) * cell  # distance_transform_edt's
+                step = lowest[i, j] - ground[ni, nj]
+                allowance = tolerance + max_slope * gap[i, j]
+                candidate[i, j] = gap[i, j] <= max_gap and abs(step) <= allowance
+    # The lowest first: a candidate more than the tolerance above the lowest candidate
+    # within the window waits until that one is ground and it can be compared (a skirt's
+    # ring waits for the trunk's foot inside it).
+    lowest_first = np.zeros((nx, ny), dtype=np.bool_)
+    for i in range(nx):
+        for j in range(ny):
+            if candidate[i, j]:
+                least = np.inf
+                for a in range(max(0, i - radius), min(nx, i + radius + 1)):
+                    for b in range(max(0, j - radius), min(ny, j + radius + 1)):
+                        if candidate[a, b] and lowest[a, b] < least:
+                            least = lowest[a, b]
+                lowest_first[i, j] = lowest[i, j] <= least + tolerance
+    # Across a gap in the rings' coverage, ground comes as a patch (a ring's arc): a lone
+    # low cell out there is a trunk or a post seen by a level ring.
+    grew = False
+    for i in range(nx):
+        for j in range(ny):
+            if not lowest_first[i, j]:
+                continue
+            if gap[i, j] > 2 * cell:
+                others = -1  # the cell itself is in its window
+                for a in range(max(0, i - radius), min(nx, i + radius + 1)):
+                    for b in range(max(0, j - radius), min(ny, j + radius + 1)):
+                        others += lowest_first[a, b]
+                if others < min_support:
+                    continue
+            ground[i, j] = lowest[i, j]
+            accepted[i, j] = True
+            pending[i, j] = False
+            grew = True
+    return grew
 
 
 def _median3(ground: np.ndarray) -> np.ndarray:
@@ -289,9 +339,8 @@ def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float)
 @warm_up
 def compile_kernels() -> None:
     """The terrain's kernels compiled for the types a scan gives them, by fitting a
-    terrain to a few made-up points and reading heights off it."""
-    xyz = np.array([[0.2, 0.1, -0.4], [1.0, -0.6, -0.38], [-0.7, 0.3, -0.41]])
-    TerrainGrid(
-        -1.0, -1.0, 0.5, np.zeros((4, 4)), np.ones((4, 4), bool), np.ones((4, 4), bool)
-    ).height(xyz)
-    _lowest_layer(xyz, TerrainConfig(), -1.0, -1.0, 4, 4)
+    terrain to made-up points (one a cell of a 2 x 2 m box) and reading heights off it."""
+    centres = np.arange(-0.75, 1.0, 0.5)
+    x, y = np.meshgrid(centres, centres)
+    xyz = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -0.4)])
+    fit_terrain(xyz, TerrainConfig(), (-1.0, 1.0), (-1.0, 1.0)).height(xyz)

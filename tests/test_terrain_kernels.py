@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from tests.test_terrain import RollingGround, one_scan, rotation
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
@@ -65,6 +66,30 @@ def numpy_z_at(grid: TerrainGrid, x, y) -> np.ndarray:
     )
 
 
+def numpy_grow(lowest, observed, ground, accepted, config) -> np.ndarray:
+    """`terrain._grow` as NumPy and scipy.ndimage computed it before its kernel."""
+    c = config.cell_m
+    pending = observed & ~accepted
+    window = max(3, 2 * round(config.support_radius_m / c) + 1)
+    for _ in range(4 * max(lowest.shape)):
+        gap, (near_i, near_j) = ndimage.distance_transform_edt(~accepted, return_indices=True)
+        gap = gap * c
+        step = lowest - ground[near_i, near_j]
+        allowance = config.step_tolerance_m + config.max_slope * gap
+        take = pending & (gap <= config.max_gap_m) & (np.abs(step) <= allowance)
+        lowest_around = ndimage.minimum_filter(np.where(take, lowest, np.inf), size=window)
+        take &= lowest <= lowest_around + config.step_tolerance_m
+        around = ndimage.uniform_filter(take.astype(float), window, mode="constant")
+        support = np.rint(around * window * window) - 1
+        take &= (gap <= 2 * c) | (support >= config.min_support_cells)
+        if not take.any():
+            break
+        ground = np.where(take, lowest, ground)
+        accepted = accepted | take
+        pending &= ~take
+    return np.where(accepted, ground, np.nan)
+
+
 def test_lowest_layer_is_numpys_bit_for_bit():
     config = DetectionConfig().terrain
     xyz = cropped_xyz()
@@ -94,6 +119,24 @@ def test_z_at_and_height_are_numpys_bit_for_bit():
     assert got.tobytes() == numpy_z_at(grid, square[..., 0], square[..., 1]).tobytes()
     value = grid.z_at(3.3, -7.1)
     assert isinstance(value, float) and value == float(numpy_z_at(grid, 3.3, -7.1))
+
+
+@pytest.mark.parametrize("seeds_m", [2.0, 4.0, 0.0])
+def test_grow_is_numpys_bit_for_bit(seeds_m):
+    """Grown from the cells within `seeds_m` of the robot: few seeds (many rounds, gaps
+    crossed in patches), more, none."""
+    config = DetectionConfig()
+    terrain_config = config.terrain
+    nx = ny = 60
+    lowest = numpy_lowest_layer(cropped_xyz(), terrain_config, -15.0, -15.0, nx, ny)
+    observed = np.isfinite(lowest)
+    centres = -15.0 + (np.arange(nx) + 0.5) * terrain_config.cell_m
+    seeds = observed & (np.hypot(centres[:, None], centres[None, :]) <= seeds_m)
+    ground = np.where(seeds, lowest, np.nan)
+    want = numpy_grow(lowest, observed, ground, seeds, terrain_config)
+    got = terrain._grow(lowest, observed, ground.copy(), seeds.copy(), terrain_config)
+    assert got.tobytes() == want.tobytes()
+    assert np.isfinite(want).sum() > (400 if seeds_m else -1)
 
 
 @pytest.mark.parametrize("shape", [(1, 5), (4, 1), (1, 1)])
@@ -128,7 +171,12 @@ def test_crop_is_to_base_and_crop_mask(tilted):
 
 
 def test_a_scan_compiles_nothing_beyond_the_warm_ups():
-    kernels = (terrain._bilinear, terrain._lowest_layer_mean, detection._crop_level)
+    kernels = (
+        terrain._bilinear,
+        terrain._lowest_layer_mean,
+        terrain._grow_once,
+        detection._crop_level,
+    )
     terrain.compile_kernels()
     detection.compile_kernels()
     warmed = [list(k.signatures) for k in kernels]
