@@ -276,17 +276,38 @@ def _median3(ground: np.ndarray) -> np.ndarray:
     """Each ground cell as the median of the ground cells in its 3 x 3 neighbourhood: a
     trunk's or a post's foot in a cell without soil returns sits a few cm up; a median
     drops such a one-cell bump and keeps slopes and furrows (NaN: not ground)."""
-    padded = np.pad(ground, 1, constant_values=np.nan)
-    # Only the ground cells get a median (the rest stay NaN): their neighbourhoods alone
-    # are gathered and sorted, not the whole grid's.
-    i, j = np.nonzero(np.isfinite(ground))
-    stack = np.stack([padded[i + di, j + dj] for di in range(3) for dj in range(3)], axis=-1)
-    # NaN sorts last: the median of the n finite values is at (n - 1) // 2 (the lower one).
-    ordered = np.sort(stack, axis=-1)
-    middle = (np.isfinite(stack).sum(axis=-1) - 1) // 2  # n >= 1: the cell itself
-    out = np.full(ground.shape, np.nan)
-    out[i, j] = np.take_along_axis(ordered, middle[:, None], axis=-1)[:, 0]
+    out = np.empty(ground.shape)
+    _median3_cells(_c_float64(ground), out)
     return out
+
+
+@kernel
+def _median3_cells(ground, out):
+    """`_median3` into `out`: per finite cell, its neighbourhood's values but NaN sorted
+    (insertion: nine at most) and the lower median of the finite ones taken, as NumPy's
+    sort (NaN last) and take did it."""
+    nx, ny = ground.shape
+    ordered = np.empty(9)
+    for i in range(nx):
+        for j in range(ny):
+            out[i, j] = np.nan
+            if not np.isfinite(ground[i, j]):
+                continue
+            size = 0
+            finite = 0
+            for a in range(max(0, i - 1), min(nx, i + 2)):
+                for b in range(max(0, j - 1), min(ny, j + 2)):
+                    value = ground[a, b]
+                    if np.isnan(value):
+                        continue
+                    finite += np.isfinite(value)
+                    k = size
+                    while k > 0 and ordered[k - 1] > value:
+                        ordered[k] = ordered[k - 1]
+                        k -= 1
+                    ordered[k] = value
+                    size += 1
+            out[i, j] = ordered[(finite - 1) // 2]
 
 
 @functools.lru_cache(maxsize=32)
@@ -301,19 +322,57 @@ def _gaussian_weights(sigma: float, truncate: float) -> np.ndarray:
     impulse[radius] = 1.0
     weights = ndimage.gaussian_filter1d(impulse, sigma, mode="constant", truncate=truncate)
     weights = weights[::-1].copy()
+    assert np.array_equal(weights, weights[::-1])  # `_correlate_twice` sums pairs
     weights.flags.writeable = False
     return weights
 
 
 def _gaussian(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """scipy.ndimage.gaussian_filter(values, sigma, mode="constant") with `weights` from
-    `_gaussian_weights`: its two correlations, along the first axis and then in place
-    along the second, without its per-call kernel and argument work."""
-    from scipy import ndimage
-
-    out = ndimage.correlate1d(values, weights, 0, None, mode="constant", cval=0.0, origin=0)
-    ndimage.correlate1d(out, weights, 1, out, mode="constant", cval=0.0, origin=0)
+    `_gaussian_weights`: its two correlations, along the first axis and then along the
+    second, compiled (`_correlate_twice`)."""
+    values = _c_float64(values)
+    out = np.empty(values.shape)
+    _correlate_twice(values, weights, np.empty(values.shape), out)
     return out
+
+
+@kernel
+def _correlate_twice(values, weights, along, out):
+    """`values` correlated with the symmetric `weights` along axis 0 (into `along`), then
+    along axis 1 (into `out`), zeros beyond the edges, each sum as scipy's correlate1d
+    makes it: the centre's product, then each pair at equal distance summed and
+    weighted, the farthest first. Pairs wholly beyond the grid add +0.0, and once is as
+    many times: they are skipped but one. Rows padded with zeros, so that the loops
+    over a row have no branch (and vectorise: each output's sum keeps its order)."""
+    nx, ny = values.shape
+    r = weights.shape[0] // 2
+    reach = min(r, nx - 1)
+    padded = np.zeros((nx + 2 * reach, ny))
+    padded[reach : reach + nx] = values
+    for i in range(nx):
+        row = along[i]
+        for j in range(ny):
+            row[j] = values[i, j] * weights[r]
+        if r > reach:
+            row += 0.0
+        for k in range(reach, 0, -1):
+            low, high, weight = padded[reach + i - k], padded[reach + i + k], weights[r - k]
+            for j in range(ny):
+                row[j] += (low[j] + high[j]) * weight
+    reach = min(r, ny - 1)
+    line = np.zeros(ny + 2 * reach)
+    for i in range(nx):
+        line[reach : reach + ny] = along[i]
+        row = out[i]
+        for j in range(ny):
+            row[j] = along[i, j] * weights[r]
+        if r > reach:
+            row += 0.0
+        for k in range(reach, 0, -1):
+            weight = weights[r - k]
+            for j in range(ny):
+                row[j] += (line[reach + j - k] + line[reach + j + k]) * weight
 
 
 def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float) -> np.ndarray:

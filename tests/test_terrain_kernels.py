@@ -139,6 +139,50 @@ def test_grow_is_numpys_bit_for_bit(seeds_m):
     assert np.isfinite(want).sum() > (400 if seeds_m else -1)
 
 
+def numpy_median3(ground: np.ndarray) -> np.ndarray:
+    """`terrain._median3` as NumPy computed it before its kernel."""
+    padded = np.pad(ground, 1, constant_values=np.nan)
+    i, j = np.nonzero(np.isfinite(ground))
+    stack = np.stack([padded[i + di, j + dj] for di in range(3) for dj in range(3)], axis=-1)
+    ordered = np.sort(stack, axis=-1)
+    middle = (np.isfinite(stack).sum(axis=-1) - 1) // 2
+    out = np.full(ground.shape, np.nan)
+    out[i, j] = np.take_along_axis(ordered, middle[:, None], axis=-1)[:, 0]
+    return out
+
+
+def test_median3_is_numpys_bit_for_bit():
+    config = DetectionConfig()
+    xyz = cropped_xyz()
+    lowest = numpy_lowest_layer(xyz, config.terrain, -15.0, -15.0, 60, 60)
+    ground = np.where(fit_terrain(xyz, config.terrain, config.crop.x_m, config.crop.y_m).ground,
+                      lowest, np.nan)  # fmt: skip
+    assert terrain._median3(ground).tobytes() == numpy_median3(ground).tobytes()
+    # Infinities sort but do not count, as np.sort and isfinite have it; a grid a row high.
+    some = np.argwhere(np.isfinite(ground))[::50]
+    ground[some[:, 0], some[:, 1]] = np.inf
+    ground[0, :5] = -np.inf
+    assert terrain._median3(ground).tobytes() == numpy_median3(ground).tobytes()
+    row = ground[20:21, :]
+    assert terrain._median3(row).tobytes() == numpy_median3(row).tobytes()
+
+
+def test_gaussian_is_scipys_with_signed_zeros_and_past_the_grid():
+    """Negative zeros (kept or lost by the pairs beyond the edges, as scipy's sums do)
+    and widths far wider than the grid."""
+    values = np.zeros((9, 7))
+    values[4, 3], values[0, 0], values[8, 6], values[2, 5] = -0.0, -1.5, 2.0, -0.0
+    for sigma in (0.4, 1.0, 3.0, 40.0):
+        want = ndimage.gaussian_filter(values, sigma, mode="constant", truncate=3.0)
+        got = terrain._gaussian(values, terrain._gaussian_weights(sigma, 3.0))
+        assert got.tobytes() == want.tobytes()
+    negative = np.full((5, 4), -0.0)
+    want = ndimage.gaussian_filter(negative, 9.0, mode="constant", truncate=3.0)
+    assert terrain._gaussian(negative, terrain._gaussian_weights(9.0, 3.0)).tobytes() == (
+        want.tobytes()
+    )
+
+
 @pytest.mark.parametrize("shape", [(1, 5), (4, 1), (1, 1)])
 def test_z_at_on_a_grid_one_cell_wide(shape):
     grid = TerrainGrid(-1.0, -2.0, 0.5, np.arange(np.prod(shape), dtype=float).reshape(shape),
