@@ -398,8 +398,9 @@ def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float)
 @warm_up
 def compile_kernels() -> None:
     """The terrain's kernels compiled for the types a scan gives them, by fitting a
-    terrain to made-up points (one a cell of a 2 x 2 m box) and reading heights off it."""
+    terrain to made-up points (one a cell of a 2 x 2 m box, a strip beside it empty: it is
+    filled) and reading heights off it."""
     centres = np.arange(-0.75, 1.0, 0.5)
     x, y = np.meshgrid(centres, centres)
     xyz = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, -0.4)])
-    fit_terrain(xyz, TerrainConfig(), (-1.0, 1.0), (-1.0, 1.0)).height(xyz)
+    fit_terrain(xyz, TerrainConfig(), (-1.0, 1.5), (-1.0, 1.0)).height(xyz)
