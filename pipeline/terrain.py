@@ -327,30 +327,35 @@ def _gaussian_weights(sigma: float, truncate: float) -> np.ndarray:
     return weights
 
 
-def _gaussian(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def _gaussian(values: np.ndarray, weights: np.ndarray, wanted: np.ndarray | None = None):
     """scipy.ndimage.gaussian_filter(values, sigma, mode="constant") with `weights` from
     `_gaussian_weights`: its two correlations, along the first axis and then along the
-    second, compiled (`_correlate_twice`)."""
+    second, compiled (`_correlate_twice`). Only at the `wanted` cells (all when None):
+    NaN elsewhere."""
     values = _c_float64(values)
-    out = np.empty(values.shape)
-    _correlate_twice(values, weights, np.empty(values.shape), out)
+    if wanted is None:
+        wanted = np.ones(values.shape, dtype=bool)
+    out = np.full(values.shape, np.nan)
+    _correlate_twice(values, weights, np.ascontiguousarray(wanted), np.empty(values.shape), out)
     return out
 
 
 @kernel
-def _correlate_twice(values, weights, along, out):
-    """`values` correlated with the symmetric `weights` along axis 0 (into `along`), then
-    along axis 1 (into `out`), zeros beyond the edges, each sum as scipy's correlate1d
-    makes it: the centre's product, then each pair at equal distance summed and
-    weighted, the farthest first. Pairs wholly beyond the grid add +0.0, and once is as
-    many times: they are skipped but one. Rows padded with zeros, so that the loops
-    over a row have no branch (and vectorise: each output's sum keeps its order)."""
+def _correlate_twice(values, weights, wanted, along, out):
+    """`values` correlated with the symmetric `weights` along axis 0 (into `along`, the
+    rows with a wanted cell), then along axis 1 (into `out`, the wanted cells), zeros
+    beyond the edges, each sum as scipy's correlate1d makes it: the centre's product,
+    then each pair at equal distance summed and weighted, the farthest first. Pairs
+    wholly beyond the grid add +0.0, and once is as many times: they are skipped but
+    one. Padded with zeros, so that the loops have no branch."""
     nx, ny = values.shape
     r = weights.shape[0] // 2
     reach = min(r, nx - 1)
     padded = np.zeros((nx + 2 * reach, ny))
     padded[reach : reach + nx] = values
     for i in range(nx):
+        if not wanted[i].any():
+            continue
         row = along[i]
         for j in range(ny):
             row[j] = values[i, j] * weights[r]
@@ -363,16 +368,18 @@ def _correlate_twice(values, weights, along, out):
     reach = min(r, ny - 1)
     line = np.zeros(ny + 2 * reach)
     for i in range(nx):
+        if not wanted[i].any():
+            continue
         line[reach : reach + ny] = along[i]
-        row = out[i]
         for j in range(ny):
-            row[j] = along[i, j] * weights[r]
-        if r > reach:
-            row += 0.0
-        for k in range(reach, 0, -1):
-            weight = weights[r - k]
-            for j in range(ny):
-                row[j] += (line[reach + j - k] + line[reach + j + k]) * weight
+            if not wanted[i, j]:
+                continue
+            total = along[i, j] * weights[r]
+            if r > reach:
+                total += 0.0
+            for k in range(reach, 0, -1):
+                total += (line[reach + j - k] + line[reach + j + k]) * weights[r - k]
+            out[i, j] = total
 
 
 def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float) -> np.ndarray:
@@ -385,9 +392,10 @@ def _fill(ground: np.ndarray, accepted: np.ndarray, cell: float, sigma_m: float)
     sigma = sigma_m / cell
     while np.isnan(out).any():
         weights = _gaussian_weights(sigma, 3.0)
-        total = _gaussian(values, weights)
-        weight = _gaussian(known.astype(float), weights)
-        fill = np.isnan(out) & (weight > 1e-6)
+        missing = np.isnan(out)  # the only cells whose means are wanted
+        total = _gaussian(values, weights, missing)
+        weight = _gaussian(known.astype(float), weights, missing)
+        fill = missing & (weight > 1e-6)
         out[fill] = total[fill] / weight[fill]
         if sigma > max(ground.shape):
             out[np.isnan(out)] = 0.0  # nothing known at all: the footprint's plane

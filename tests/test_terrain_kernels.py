@@ -168,14 +168,22 @@ def test_median3_is_numpys_bit_for_bit():
 
 
 def test_gaussian_is_scipys_with_signed_zeros_and_past_the_grid():
-    """Negative zeros (kept or lost by the pairs beyond the edges, as scipy's sums do)
-    and widths far wider than the grid."""
+    """Negative zeros (kept or lost by the pairs beyond the edges, as scipy's sums do),
+    widths far wider than the grid, and some cells only."""
     values = np.zeros((9, 7))
     values[4, 3], values[0, 0], values[8, 6], values[2, 5] = -0.0, -1.5, 2.0, -0.0
     for sigma in (0.4, 1.0, 3.0, 40.0):
         want = ndimage.gaussian_filter(values, sigma, mode="constant", truncate=3.0)
         got = terrain._gaussian(values, terrain._gaussian_weights(sigma, 3.0))
         assert got.tobytes() == want.tobytes()
+    # Only some cells wanted (the fill's missing ones): those are scipy's, the rest NaN.
+    wanted = np.zeros(values.shape, dtype=bool)
+    wanted[4, :3], wanted[7, 6], wanted[0, 0] = True, True, True
+    for sigma in (1.0, 40.0):
+        want = ndimage.gaussian_filter(values, sigma, mode="constant", truncate=3.0)
+        got = terrain._gaussian(values, terrain._gaussian_weights(sigma, 3.0), wanted)
+        assert got[wanted].tobytes() == want[wanted].tobytes()
+        assert np.isnan(got[~wanted]).all()
     negative = np.full((5, 4), -0.0)
     want = ndimage.gaussian_filter(negative, 9.0, mode="constant", truncate=3.0)
     assert terrain._gaussian(negative, terrain._gaussian_weights(9.0, 3.0)).tobytes() == (
