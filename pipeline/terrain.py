@@ -327,7 +327,9 @@ def _gaussian_weights(sigma: float, truncate: float) -> np.ndarray:
     return weights
 
 
-def _gaussian(values: np.ndarray, weights: np.ndarray, wanted: np.ndarray | None = None):
+def _gaussian(
+    values: np.ndarray, weights: np.ndarray, wanted: np.ndarray | None = None
+) -> np.ndarray:
     """scipy.ndimage.gaussian_filter(values, sigma, mode="constant") with `weights` from
     `_gaussian_weights`: its two correlations, along the first axis and then along the
     second, compiled (`_correlate_twice`). Only at the `wanted` cells (all when None):
@@ -347,7 +349,7 @@ def _correlate_twice(values, weights, wanted, along, out):
     beyond the edges, each sum as scipy's correlate1d makes it: the centre's product,
     then each pair at equal distance summed and weighted, the farthest first. Pairs
     wholly beyond the grid add +0.0, and once is as many times: they are skipped but
-    one. Padded with zeros, so that the loops have no branch."""
+    one. The lines are padded with zeros: no bounds to check in the loops over pairs."""
     nx, ny = values.shape
     r = weights.shape[0] // 2
     reach = min(r, nx - 1)
