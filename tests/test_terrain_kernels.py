@@ -220,6 +220,7 @@ def test_crop_is_to_base_and_crop_mask(tilted):
     got_xyz, got_keep = crop(every_other, mount, config)
     assert got_keep.tobytes() == keep.tobytes()
     assert got_xyz.tobytes() == np.take(xyz, keep, axis=0).tobytes()
+    assert len(detection._crop_level.signatures) == 1
 
 
 def test_a_scan_compiles_nothing_beyond_the_warm_ups():
