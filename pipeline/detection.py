@@ -16,6 +16,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from treetraits.drivers.records import POINT_DTYPE
+from treetraits.jit import kernel, warm_up
 from treetraits.pipeline.classify import (
     Shape,
     horizontal_extent,
@@ -143,6 +145,69 @@ def crop_mask(xyz: np.ndarray, config: CropConfig, lidar_xy: np.ndarray) -> np.n
     return keep & ~near
 
 
+def crop(
+    points: np.ndarray, T_base_lidar: np.ndarray, config: CropConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """The returns `crop_mask` keeps, in `base` (K x 3 float64, as `to_base` gives them),
+    and their indices in `points`. For the usual level mount one compiled pass over the
+    points does it (`to_base` and `crop_mask` are a dozen NumPy passes)."""
+    if points.dtype != POINT_DTYPE or not np.array_equal(T_base_lidar[:3, :3], np.eye(3)):
+        xyz = to_base(points, T_base_lidar)
+        keep = np.flatnonzero(crop_mask(xyz, config, T_base_lidar[:2, 3]))
+        return np.take(xyz, keep, axis=0), keep
+    offset = np.asarray(T_base_lidar, dtype=float)[:3, 3]
+    xyz = np.empty((len(points), 3))
+    keep = np.empty(len(points), dtype=np.int64)
+    count = _crop_level(
+        _point_words(points), *offset,
+        *(float(v) for v in (*config.x_m, *config.y_m, *config.z_m, *T_base_lidar[:2, 3])),
+        float(config.min_range_m**2), xyz, keep,
+    )  # fmt: skip
+    return xyz[:count], keep[:count]
+
+
+_WORDS = POINT_DTYPE.itemsize // 4  # a point as 4-byte words: x, y, z first (float32)
+assert [POINT_DTYPE.fields[f][1] for f in ("x", "y", "z")] == [0, 4, 8]
+
+
+def _point_words(points: np.ndarray) -> np.ndarray:
+    """POINT_DTYPE points as a writable C-ordered (points, 7) float32 view (copied when
+    they are not so): the one layout `_crop_level` is compiled for."""
+    if not (points.flags.c_contiguous and points.flags.writeable):
+        points = np.array(points, order="C")
+    return points.view(np.float32).reshape(len(points), _WORDS)
+
+
+@kernel
+def _crop_level(words, dx, dy, dz, x_lo, x_hi, y_lo, y_hi, z_lo, z_hi, lidar_x, lidar_y,
+                min_range_sq, xyz, keep):  # fmt: skip
+    """`to_base` for a level mount (the float32 fields in float64, plus the offset) and
+    `crop_mask`, with their comparisons, into `xyz` and `keep` (each point kept, its
+    index); returns how many were kept."""
+    count = 0
+    for k in range(words.shape[0]):
+        x = np.float64(words[k, 0]) + dx
+        y = np.float64(words[k, 1]) + dy
+        z = np.float64(words[k, 2]) + dz
+        if not (x >= x_lo and x <= x_hi and y >= y_lo and y <= y_hi and z >= z_lo and z <= z_hi):
+            continue
+        from_x, from_y = x - lidar_x, y - lidar_y
+        if from_x * from_x + from_y * from_y < min_range_sq:  # on the robot
+            continue
+        xyz[count, 0], xyz[count, 1], xyz[count, 2] = x, y, z
+        keep[count] = k
+        count += 1
+    return count
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The crop's kernel compiled for the types a scan gives it, on two made-up points."""
+    points = np.zeros(2, dtype=POINT_DTYPE)
+    points["x"] = 3.0, 0.0
+    crop(points, np.eye(4), CropConfig())
+
+
 def fit_ground(xyz: np.ndarray, config: GroundConfig) -> GroundPlane:
     """RANSAC plane through the points near the footprint plane, refitted by least
     squares on its inliers; FLAT when no acceptable plane is found."""
@@ -267,9 +332,8 @@ def detect(
     clock = StageClock(stage_ms)
     counts = {"points": len(points)}
     # Robot-relative box: the far field is too sparse to cluster and the robot is not a tree.
-    xyz = to_base(points, T_base_lidar)
-    keep = np.flatnonzero(crop_mask(xyz, config.crop, T_base_lidar[:2, 3]))
-    xyz, ring = np.take(xyz, keep, axis=0), points["ring"][keep]
+    xyz, keep = crop(points, T_base_lidar, config.crop)
+    ring = points["ring"][keep]
     source = keep  # each kept return's index in `points`
     counts["cropped"] = len(xyz)
     clock.lap("crop")

@@ -1,0 +1,62 @@
+"""De-skew's compiled blend (`deskew._translate_and_blend`) gives the bits of the NumPy
+formulation it replaced, on the walled yard's sweep taken while driving and turning."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.test_deskew import T_BASE_LIDAR, samples, sweep
+from treetraits.pipeline import deskew as deskew_module
+from treetraits.pipeline.deskew import _blend, deskew
+
+
+def numpy_deskew(points, point_times, sample_times, sample_poses, t_ref, T_base_lidar):
+    """`deskew` as NumPy computed it before its kernel (valid arguments, M >= 2)."""
+    xyz = np.asarray(points, dtype=float).reshape(-1, 3)
+    times = np.asarray(sample_times, dtype=np.int64)
+    poses = np.asarray(sample_poses, dtype=float).reshape(-1, 4, 4)
+    lidar_base = np.linalg.inv(T_base_lidar)
+    ref = _blend(poses, times, np.array([t_ref], dtype=np.int64))[0]
+    a = lidar_base @ np.linalg.inv(ref) @ poses @ T_base_lidar
+    t = np.clip(np.asarray(point_times, dtype=np.int64), times[0], times[-1])
+    order = None
+    if np.any(t[1:] < t[:-1]):
+        order = np.argsort(t, kind="stable")
+        t, xyz = t[order], xyz[order]
+    edges = np.concatenate(([0], np.searchsorted(t, times[1:-1], side="right"), [len(t)]))
+    out = np.empty_like(xyz)
+    for j in range(len(times) - 1):
+        lo, hi = edges[j], edges[j + 1]
+        if lo == hi:
+            continue
+        p = xyz[lo:hi]
+        w = ((t[lo:hi] - times[j]) / float(times[j + 1] - times[j]))[:, None]
+        p0 = p @ a[j, :3, :3].T + a[j, :3, 3]
+        p1 = p @ a[j + 1, :3, :3].T + a[j + 1, :3, 3]
+        out[lo:hi] = p0 + w * (p1 - p0)
+    if order is not None:
+        unsorted = np.empty_like(out)
+        unsorted[order] = out
+        out = unsorted
+    return out
+
+
+@pytest.mark.parametrize("arrangement", ["firing-order", "shuffled", "sparse-samples"])
+def test_deskew_is_numpys_bit_for_bit(arrangement):
+    points, dt, _ = sweep()
+    times, poses = samples()
+    if arrangement == "shuffled":  # sorted, blended and put back in place
+        shuffle = np.random.default_rng(5).permutation(len(points))
+        points, dt = points[shuffle], dt[shuffle]
+    if arrangement == "sparse-samples":  # intervals without points; points past the ends
+        keep = [0, 1, 2, 6, 7, len(times) - 3]
+        times, poses = times[keep], poses[keep]
+    args = (points, dt, times, poses, 1_000_000)
+    want = numpy_deskew(*args, T_BASE_LIDAR)
+    got = deskew(*args, T_BASE_LIDAR)
+    assert np.abs(got - points).max() > 0.1  # the robot moved: there was work to do
+    assert got.tobytes() == want.tobytes()
+    # A scan compiles nothing beyond the warm-up.
+    deskew_module.compile_kernels()
+    assert len(deskew_module._translate_and_blend.signatures) == 1
