@@ -23,7 +23,7 @@ from treetraits.pipeline.classify import (
     roughness_of_groups,
     shape_of,
 )
-from treetraits.pipeline.clustering import euclidean_clusters, planar_clusters, stable_order
+from treetraits.pipeline.clustering import euclidean_clusters, stable_order
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -555,7 +555,7 @@ def _band_blobs(
     xy = band_xyz[:, :2]
     # Clustered in x-y alone: the same pairs as with z = 0, one dimension less to search.
     found = []
-    for mine in _groups(planar_clusters(xy, 0.25)):
+    for mine in _groups(euclidean_clusters(xy, 0.25)):
         if len(mine) < config.min_trunk_points:
             continue
         part = xy[mine]
