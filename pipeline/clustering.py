@@ -173,6 +173,8 @@ def compile_kernels() -> None:
     index = np.arange(2)
     _root(index, 1)
     _any_pair_within(np.zeros((2, 3)), index, index, 0, 1, 0.25)
+    _attached(np.zeros((1, 3)), np.zeros((2, 3)), index, 0.5)
+    _nearest_labels(np.zeros((1, 2)), np.zeros((2, 2)), index)
 
 
 def connected_labels(n: int, pairs: np.ndarray) -> np.ndarray:
@@ -206,6 +208,11 @@ def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, toleranc
     """Label of the nearest anchor within `tolerance` for each point, -1 where none."""
     if len(points) == 0 or len(anchors) == 0:
         return np.full(len(points), -1, dtype=np.int64)
+    out, sure = _attached(_c64(points), _c64(anchors), _c64(labels, np.int64), float(tolerance))
+    if sure:
+        return out
+    # A grid too wide for int64 keys, or anchors of two labels at the same distance: the
+    # k-d tree's choice among them.
     from scipy.spatial import cKDTree
 
     distance, index = cKDTree(anchors).query(points, distance_upper_bound=tolerance)
@@ -213,6 +220,113 @@ def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, toleranc
     out = np.full(len(points), -1, dtype=np.int64)
     out[found] = labels[index[found]]
     return out
+
+
+def nearest_label(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Label of the nearest anchor for each point (a few points: a blob's centres)."""
+    out, sure = _nearest_labels(_c64(points), _c64(anchors), _c64(labels, np.int64))
+    if sure:
+        return out
+    from scipy.spatial import cKDTree  # anchors of two labels at the same distance
+
+    return labels[cKDTree(anchors).query(points)[1]]
+
+
+def _c64(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+    """The one layout the kernels are compiled for (numba compiles anew for each)."""
+    return np.require(array, dtype, ["C", "W"])
+
+
+@kernel
+def _attached(
+    points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, tolerance: float
+) -> tuple[np.ndarray, bool]:
+    """`attach` on a grid of cells a little wider than the tolerance: a point's anchors
+    within it are in its cell or the next ones. Distances squared, summed axis by axis
+    and compared < as the k-d tree's bounded query does. Not sure (False) when the cell
+    keys would not fit int64 or anchors of two labels are nearest at once."""
+    n, dims = points.shape
+    out = np.full(n, -1, dtype=np.int64)
+    size = tolerance * (1 + 1e-6)
+    low = np.empty(dims)
+    high = np.zeros(dims, dtype=np.int64)
+    for a in range(dims):
+        low[a] = anchors[:, a].min()
+        high[a] = np.int64(np.floor((anchors[:, a].max() - low[a]) / size))
+    stride = np.empty(dims, dtype=np.int64)
+    span = 1
+    for a in range(dims - 1, -1, -1):
+        stride[a] = span
+        if float(span) * float(high[a] + 1) > 2.0**62:
+            return out, False
+        span *= high[a] + 1
+    key = np.zeros(len(anchors), dtype=np.int64)
+    for k in range(len(anchors)):
+        for a in range(dims):
+            key[k] += np.int64(np.floor((anchors[k, a] - low[a]) / size)) * stride[a]
+    order = np.argsort(key)
+    sorted_key = key[order]
+    squared = tolerance * tolerance
+    cell = np.empty(dims, dtype=np.int64)
+    for i in range(n):
+        outside = False
+        for a in range(dims):
+            c = np.floor((points[i, a] - low[a]) / size)
+            outside |= c < -1 or c > high[a] + 1
+            cell[a] = np.int64(c) if not outside else 0
+        if outside:
+            continue
+        best, best_label, tied = np.inf, np.int64(-1), False
+        for code in range(3**dims):
+            target, rest, valid = 0, code, True
+            for a in range(dims):
+                c = cell[a] + rest % 3 - 1
+                rest //= 3
+                valid &= 0 <= c <= high[a]
+                target += c * stride[a]
+            if not valid:
+                continue
+            r = np.searchsorted(sorted_key, target)
+            while r < len(sorted_key) and sorted_key[r] == target:
+                k = order[r]
+                r += 1
+                total = 0.0
+                for a in range(dims):
+                    gap = points[i, a] - anchors[k, a]
+                    total += gap * gap
+                if total < best:
+                    best, best_label, tied = total, labels[k], False
+                elif total == best and labels[k] != best_label:
+                    tied = True
+        if best < squared:
+            if tied:
+                return out, False
+            out[i] = best_label
+    return out, True
+
+
+@kernel
+def _nearest_labels(
+    points: np.ndarray, anchors: np.ndarray, labels: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """`nearest_label` by every distance (squared, summed axis by axis as the k-d tree
+    sums it). Not sure (False) when anchors of two labels are nearest at once."""
+    out = np.empty(len(points), dtype=np.int64)
+    for i in range(len(points)):
+        best, best_label, tied = np.inf, np.int64(-1), False
+        for k in range(len(anchors)):
+            total = 0.0
+            for a in range(points.shape[1]):
+                gap = points[i, a] - anchors[k, a]
+                total += gap * gap
+            if total < best:
+                best, best_label, tied = total, labels[k], False
+            elif total == best and labels[k] != best_label:
+                tied = True
+        if tied:
+            return out, False
+        out[i] = best_label
+    return out, True
 
 
 def stable_order(labels: np.ndarray) -> np.ndarray:

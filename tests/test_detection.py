@@ -18,6 +18,7 @@ from treetraits.pipeline.clustering import (
     connected_labels,
     euclidean_clusters,
     kdtree_clusters,
+    nearest_label,
 )
 from treetraits.pipeline.config import (
     ClassifyConfig,
@@ -301,6 +302,42 @@ def test_attach_takes_the_nearest_anchor_within_reach():
     anchors = np.array([[0.0, 0, 0], [1.0, 0, 0]])
     labels = attach(np.array([[0.2, 0, 0], [0.9, 0, 0], [5, 0, 0]]), anchors, np.array([4, 7]), 0.5)
     assert labels.tolist() == [4, 7, -1]
+
+
+def _kdtree_attach(points, anchors, labels, tolerance):
+    """`attach` as the k-d tree's bounded query gave it (the reference)."""
+    from scipy.spatial import cKDTree
+
+    distance, index = cKDTree(anchors).query(points, distance_upper_bound=tolerance)
+    return np.where(np.isfinite(distance), labels[np.minimum(index, len(anchors) - 1)], -1)
+
+
+def test_attach_and_nearest_label_are_the_kdtrees():
+    """The compiled searches against the k-d tree's queries: random clouds in 2-D and
+    3-D, points exactly at the tolerance (not within it, as the tree's bound is strict),
+    points far outside the anchors' box, and equidistant anchors of two labels (the
+    tree's pick, whatever it is)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(12)
+    for dims in (2, 3):
+        for _trial in range(20):
+            anchors = rng.uniform(-3, 3, (int(rng.integers(1, 400)), dims))
+            labels = rng.integers(0, 5, len(anchors))
+            points = np.vstack([rng.uniform(-4, 4, (300, dims)), rng.uniform(-50, 50, (5, dims))])
+            on_edge = anchors[: min(5, len(anchors))] + 0.5 * np.eye(dims)[0]
+            points = np.vstack([points, on_edge, anchors[:3]])
+            assert np.array_equal(
+                attach(points, anchors, labels, 0.5), _kdtree_attach(points, anchors, labels, 0.5)
+            )
+            nearest = cKDTree(anchors).query(points[:20])[1]
+            assert np.array_equal(nearest_label(points[:20], anchors, labels), labels[nearest])
+    anchors = np.array([[-0.25, 0.0], [0.25, 0.0], [3.0, 0.0]])
+    for labels in (np.array([1, 2, 3]), np.array([2, 1, 3])):
+        middle = np.array([[0.0, 0.0], [2.9, 0.0]])
+        tree = _kdtree_attach(middle, anchors, labels, 0.5)
+        assert np.array_equal(attach(middle, anchors, labels, 0.5), tree)
+        assert np.array_equal(nearest_label(middle, anchors, labels), tree)
 
 
 def test_hull_area_and_volume_of_a_box():
