@@ -208,7 +208,12 @@ def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, toleranc
     """Label of the nearest anchor within `tolerance` for each point, -1 where none."""
     if len(points) == 0 or len(anchors) == 0:
         return np.full(len(points), -1, dtype=np.int64)
-    out, sure = _attached(_c64(points), _c64(anchors), _c64(labels, np.int64), float(tolerance))
+    out, sure = _attached(
+        kernel_layout(points),
+        kernel_layout(anchors),
+        kernel_layout(labels, np.int64),
+        float(tolerance),
+    )
     if sure:
         return out
     # A grid too wide for int64 keys, or anchors of two labels at the same distance: the
@@ -224,7 +229,9 @@ def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, toleranc
 
 def nearest_label(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """Label of the nearest anchor for each point (a few points: a blob's centres)."""
-    out, sure = _nearest_labels(_c64(points), _c64(anchors), _c64(labels, np.int64))
+    out, sure = _nearest_labels(
+        kernel_layout(points), kernel_layout(anchors), kernel_layout(labels, np.int64)
+    )
     if sure:
         return out
     from scipy.spatial import cKDTree  # anchors of two labels at the same distance
@@ -232,7 +239,7 @@ def nearest_label(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray) -
     return labels[cKDTree(anchors).query(points)[1]]
 
 
-def _c64(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+def kernel_layout(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
     """The one layout the kernels are compiled for (numba compiles anew for each)."""
     return np.require(array, dtype, ["C", "W"])
 

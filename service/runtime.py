@@ -76,6 +76,7 @@ PIPELINE_MODULES = (
     # Every module with compiled kernels (treetraits.jit), for their warm-ups.
     "treetraits.drivers.velodyne.packet",
     "treetraits.pipeline.clustering",
+    "treetraits.pipeline.stems",
 )
 
 
