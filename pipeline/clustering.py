@@ -24,12 +24,13 @@ def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree"
         rank = np.empty(len(first), dtype=np.int64)
         rank[np.argsort(first, kind="stable")] = np.arange(len(first))
         return rank[labels.ravel()]
-    # One layout for the kernel (numba compiles anew for each): float64, C, writable.
-    points = np.require(xyz, np.float64, ["C", "W"])
-    labels = _grid_labels(points, float(tolerance))
-    if len(labels) == n:
-        return labels
-    return kdtree_clusters(points, tolerance)  # a grid too wide for int64 cell keys
+    points = kernel_layout(xyz)
+    if tolerance > 0:
+        labels = _grid_labels(points, float(tolerance))
+        if len(labels) == n:
+            return labels
+    # No grid without a tolerance, nor one too wide for int64 cell keys.
+    return kdtree_clusters(points, tolerance)
 
 
 def kdtree_clusters(xyz: np.ndarray, tolerance: float) -> np.ndarray:

@@ -255,6 +255,7 @@ def test_the_grid_kernel_clusters_a_twin_scan_as_the_kdtree(tree_scan):
 def test_a_grid_too_wide_for_its_keys_is_left_to_the_kdtree():
     cloud = np.array([[0.0, 0, 0], [0.3, 0, 0], [1e9, 1e9, 1e9], [1e9, 1e9, 1e9 + 0.4]])
     assert euclidean_clusters(cloud, 0.5).tolist() == [0, 0, 1, 1]
+    assert euclidean_clusters(cloud[[0, 0, 1]], 0.0).tolist() == [0, 0, 1]  # no grid
 
 
 def test_a_box_short_of_a_width_proves_the_group_narrower():
