@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from treetraits.jit import kernel, warm_up
+
 
 def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree") -> np.ndarray:
-    """Single-linkage clusters: two points closer than `tolerance` share a cluster.
-    Labels 0.. numbered by each cluster's first point (deterministic)."""
+    """Single-linkage clusters of points (N x 2 or N x 3): two points closer than
+    `tolerance` share a cluster. Labels 0.. numbered by each cluster's first point
+    (deterministic). "kdtree": the pairs the k-d tree lists (squared distances, compared
+    as it compares them), linked on a grid (`_grid_labels`)."""
     n = len(xyz)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
@@ -20,80 +24,158 @@ def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree"
         rank = np.empty(len(first), dtype=np.int64)
         rank[np.argsort(first, kind="stable")] = np.arange(len(first))
         return rank[labels.ravel()]
+    points = kernel_layout(xyz)
+    if tolerance > 0:
+        labels = _grid_labels(points, float(tolerance))
+        if len(labels) == n:
+            return labels
+    # No grid without a tolerance, nor one too wide for int64 cell keys.
+    return kdtree_clusters(points, tolerance)
+
+
+def kdtree_clusters(xyz: np.ndarray, tolerance: float) -> np.ndarray:
+    """`euclidean_clusters` by the k-d tree's pairs and their connected components."""
     from scipy.spatial import cKDTree
 
     # Split at the midpoint, not the median: a quicker build for the same pairs (the
     # labels do not depend on the order they come in).
     pairs = cKDTree(xyz, balanced_tree=False).query_pairs(tolerance, output_type="ndarray")
-    return connected_labels(n, pairs)
+    return connected_labels(len(xyz), pairs)
 
 
-# Below this many points the k-d tree's pair search is the cheaper (bench on the demo's
-# and a cluttered field drive's trunk bands: 0.05-0.24 ms against 0.09-0.29 ms up to 500
-# points, even around 800); above it the pairs grow with the density (a wall, a vehicle
-# or a hedge's skirt in the band: 1-4 ms for 1000-2500 points) and the grid wins
-# (0.6-0.9 ms).
-_GRID_FROM = 800
-
-# `planar_clusters`' grid: cells a third of the tolerance wide. Two points in cells next
-# to each other (the 3 x 3 block) are at most sqrt(8)/3 = 0.94 tolerance apart, linked
-# without a look at them; a pair within the tolerance is at most 3 cells apart on each
-# axis. The other half of the 7 x 7 block is the same pairs seen from the far side.
-_REACH = 3
-_HALF = np.array(
-    [(di, dj) for di in range(_REACH + 1) for dj in range(-_REACH, _REACH + 1) if di or dj > 0]
-)
-_SURE = (np.abs(_HALF) <= 1).all(axis=1)
+# `_grid_labels`' cells: a little narrower than the tolerance over the square root of the
+# dimensions, so that any two points of one cell are within it (linked without a look),
+# and a pair within it lies at most _REACH cells apart on each axis (tolerance / cell
+# width: sqrt(2) or sqrt(3), under 2).
+_REACH = 2
+_NARROWER = 1 - 1e-6
 
 
-def planar_clusters(xy: np.ndarray, tolerance: float) -> np.ndarray:
-    """`euclidean_clusters` of x-y points (N x 2), the same labels. Many points (a dense
-    band) are linked cell by cell on a grid: only the cells 2-3 apart that the nearer
-    cells did not already join have their points' distances looked at, where the k-d tree
-    lists every pair within the tolerance (tens of thousands on a wall)."""
-    if len(xy) < _GRID_FROM:
-        return euclidean_clusters(xy, tolerance)
-    ij = np.floor((xy - xy.min(axis=0)) / (tolerance / _REACH * (1 + 1e-6))).astype(np.int64)
-    width = int(ij[:, 1].max()) + 2 * _REACH + 1  # no neighbour wraps into the next row
-    key = ij[:, 0] * width + ij[:, 1]
-    order = np.argsort(key, kind="stable")
-    cells, start, count = np.unique(key[order], return_index=True, return_counts=True)
-    # Each occupied cell's index in a dense table, padded by the reach: every cell's
-    # neighbours read at once.
-    table = np.full((int(ij[:, 0].max()) + 1 + _REACH) * width, -1, dtype=np.int64)
-    table[cells] = np.arange(len(cells))
-    offsets = _HALF[:, 0] * width + _HALF[:, 1]
-    cell_label = connected_labels(len(cells), _cell_pairs(table, cells, offsets[_SURE]))
-    # Farther cells: only those in two groups yet, by their points' distances (squared,
-    # as the k-d tree compares them).
-    far = _cell_pairs(table, cells, offsets[~_SURE])
-    far = far[cell_label[far[:, 0]] != cell_label[far[:, 1]]]
-    if len(far):
-        sizes = count[far[:, 0]] * count[far[:, 1]]
-        pair = np.repeat(np.arange(len(far)), sizes)
-        rank = np.arange(len(pair)) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-        across = count[far[pair, 1]]
-        gap = xy[order[start[far[pair, 0]] + rank // across]]
-        gap -= xy[order[start[far[pair, 1]] + rank % across]]
-        close = gap[:, 0] * gap[:, 0] + gap[:, 1] * gap[:, 1] <= tolerance * tolerance
-        linked = far[np.unique(pair[close])]
-        if len(linked):
-            groups = int(cell_label.max()) + 1
-            cell_label = connected_labels(groups, cell_label[linked])[cell_label]
-    labels = np.empty(len(xy), dtype=np.int64)
-    labels[order] = np.repeat(cell_label, count)
-    # Numbered by each cluster's first point, as `connected_labels` numbers them.
-    _, lead = np.unique(labels, return_index=True)
-    rank = np.empty(len(lead), dtype=np.int64)
-    rank[np.argsort(lead)] = np.arange(len(lead))
-    return rank[labels]
+@kernel
+def _grid_labels(points: np.ndarray, tolerance: float) -> np.ndarray:
+    """`euclidean_clusters` of `points` (N x D float64, C order; N > 0): the occupied
+    cells of the grid are the nodes of a union-find, two of them joined by the first
+    pair of their points within the tolerance, the cells in reach looked at from one
+    side only and not at all once joined. Empty when the cell keys would not fit int64."""
+    n, dims = points.shape
+    size = tolerance / np.sqrt(dims) * _NARROWER
+    low = np.empty(dims)
+    for a in range(dims):
+        low[a] = points[:, a].min()
+    cell = np.empty((n, dims), dtype=np.int64)
+    high = np.zeros(dims, dtype=np.int64)
+    for i in range(n):
+        for a in range(dims):
+            c = np.int64(np.floor((points[i, a] - low[a]) / size))
+            cell[i, a] = c
+            high[a] = max(high[a], c)
+    # Keys padded by the reach on each axis: no neighbour's key wraps into another row.
+    stride = np.empty(dims, dtype=np.int64)
+    span = 1
+    for a in range(dims - 1, -1, -1):
+        stride[a] = span
+        width = high[a] + 1 + 2 * _REACH
+        if float(span) * float(width) > 2.0**62:
+            return np.empty(0, dtype=np.int64)
+        span *= width
+    key = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        k = 0
+        for a in range(dims):
+            k += (cell[i, a] + _REACH) * stride[a]
+        key[i] = k
+    order = np.argsort(key)  # any order within a cell: it is linked whole
+    # The occupied cells in key order: their keys and their points' range in `order`.
+    cell_key = np.empty(n, dtype=np.int64)
+    first = np.empty(n + 1, dtype=np.int64)
+    cell_of = np.empty(n, dtype=np.int64)
+    cells = 0
+    for r in range(n):
+        k = key[order[r]]
+        if cells == 0 or k != cell_key[cells - 1]:
+            cell_key[cells] = k
+            first[cells] = r
+            cells += 1
+        cell_of[order[r]] = cells - 1
+    first[cells] = n
+    # Key steps to the cells in reach after a cell in key order (the other half sees it).
+    offsets = np.empty(((2 * _REACH + 1) ** dims - 1) // 2, dtype=np.int64)
+    found = 0
+    for code in range((2 * _REACH + 1) ** dims):
+        step, rest = 0, code
+        for a in range(dims):
+            step += (rest % (2 * _REACH + 1) - _REACH) * stride[a]
+            rest //= 2 * _REACH + 1
+        if step > 0:
+            offsets[found] = step
+            found += 1
+    # For each step, the first cell whose key is not below the target: it only moves on.
+    at = np.zeros(len(offsets), dtype=np.int64)
+    parent = np.arange(cells)
+    squared = tolerance * tolerance
+    for c in range(cells):
+        for o in range(len(offsets)):
+            target = cell_key[c] + offsets[o]
+            while at[o] < cells and cell_key[at[o]] < target:
+                at[o] += 1
+            d = at[o]
+            if d == cells or cell_key[d] != target:
+                continue
+            root_c, root_d = _root(parent, c), _root(parent, d)
+            if root_c != root_d and _any_pair_within(points, order, first, c, d, squared):
+                parent[max(root_c, root_d)] = min(root_c, root_d)
+    # Numbered by each cluster's first point.
+    number = np.full(cells, -1, dtype=np.int64)
+    labels = np.empty(n, dtype=np.int64)
+    clusters = 0
+    for i in range(n):
+        root = _root(parent, cell_of[i])
+        if number[root] < 0:
+            number[root] = clusters
+            clusters += 1
+        labels[i] = number[root]
+    return labels
 
 
-def _cell_pairs(table: np.ndarray, cells: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(k, 2) indices of the occupied cells `offsets` (flat keys) from each occupied cell."""
-    near = table[(offsets[:, None] + cells[None, :]).ravel()]
-    found = np.flatnonzero(near >= 0)
-    return np.stack([found % len(cells), near[found]], axis=1)
+@kernel
+def _root(parent: np.ndarray, node: int) -> int:
+    """Union-find's root of `node`, halving the path on the way."""
+    while parent[node] != node:
+        parent[node] = parent[parent[node]]
+        node = parent[node]
+    return node
+
+
+@kernel
+def _any_pair_within(
+    points: np.ndarray, order: np.ndarray, first: np.ndarray, c: int, d: int, squared: float
+) -> bool:
+    """Whether a point of cell c and one of cell d are within the tolerance: the squared
+    distance summed axis by axis from zero, as the k-d tree sums it, and compared <=."""
+    for r in range(first[c], first[c + 1]):
+        i = order[r]
+        for s in range(first[d], first[d + 1]):
+            j = order[s]
+            total = 0.0
+            for a in range(points.shape[1]):
+                gap = points[i, a] - points[j, a]
+                total += gap * gap
+            if total <= squared:
+                return True
+    return False
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The clustering kernels compiled for the points a scan gives them (x-y and x-y-z).
+    The helpers too: a caller loaded from the cache does not compile its callees."""
+    for dims in (2, 3):
+        _grid_labels(np.zeros((2, dims)), 0.5)
+    index = np.arange(2)
+    _root(index, 1)
+    _any_pair_within(np.zeros((2, 3)), index, index, 0, 1, 0.25)
+    _attached(np.zeros((1, 3)), np.zeros((2, 3)), index, 0.5)
+    _nearest_labels(np.zeros((1, 2)), np.zeros((2, 2)), index)
 
 
 def connected_labels(n: int, pairs: np.ndarray) -> np.ndarray:
@@ -127,6 +209,16 @@ def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, toleranc
     """Label of the nearest anchor within `tolerance` for each point, -1 where none."""
     if len(points) == 0 or len(anchors) == 0:
         return np.full(len(points), -1, dtype=np.int64)
+    out, sure = _attached(
+        kernel_layout(points),
+        kernel_layout(anchors),
+        kernel_layout(labels, np.int64),
+        float(tolerance),
+    )
+    if sure:
+        return out
+    # A grid too wide for int64 keys, or anchors of two labels at the same distance: the
+    # k-d tree's choice among them.
     from scipy.spatial import cKDTree
 
     distance, index = cKDTree(anchors).query(points, distance_upper_bound=tolerance)
@@ -134,6 +226,115 @@ def attach(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, toleranc
     out = np.full(len(points), -1, dtype=np.int64)
     out[found] = labels[index[found]]
     return out
+
+
+def nearest_label(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Label of the nearest anchor for each point (a few points: a blob's centres)."""
+    out, sure = _nearest_labels(
+        kernel_layout(points), kernel_layout(anchors), kernel_layout(labels, np.int64)
+    )
+    if sure:
+        return out
+    from scipy.spatial import cKDTree  # anchors of two labels at the same distance
+
+    return labels[cKDTree(anchors).query(points)[1]]
+
+
+def kernel_layout(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+    """The one layout the kernels are compiled for (numba compiles anew for each)."""
+    return np.require(array, dtype, ["C", "W"])
+
+
+@kernel
+def _attached(
+    points: np.ndarray, anchors: np.ndarray, labels: np.ndarray, tolerance: float
+) -> tuple[np.ndarray, bool]:
+    """`attach` on a grid of cells a little wider than the tolerance: a point's anchors
+    within it are in its cell or the next ones. Distances squared, summed axis by axis
+    and compared < as the k-d tree's bounded query does. Not sure (False) when the cell
+    keys would not fit int64 or anchors of two labels are nearest at once."""
+    n, dims = points.shape
+    out = np.full(n, -1, dtype=np.int64)
+    size = tolerance * (1 + 1e-6)
+    low = np.empty(dims)
+    high = np.zeros(dims, dtype=np.int64)
+    for a in range(dims):
+        low[a] = anchors[:, a].min()
+        high[a] = np.int64(np.floor((anchors[:, a].max() - low[a]) / size))
+    stride = np.empty(dims, dtype=np.int64)
+    span = 1
+    for a in range(dims - 1, -1, -1):
+        stride[a] = span
+        if float(span) * float(high[a] + 1) > 2.0**62:
+            return out, False
+        span *= high[a] + 1
+    key = np.zeros(len(anchors), dtype=np.int64)
+    for k in range(len(anchors)):
+        for a in range(dims):
+            key[k] += np.int64(np.floor((anchors[k, a] - low[a]) / size)) * stride[a]
+    order = np.argsort(key)
+    sorted_key = key[order]
+    squared = tolerance * tolerance
+    cell = np.empty(dims, dtype=np.int64)
+    for i in range(n):
+        outside = False
+        for a in range(dims):
+            c = np.floor((points[i, a] - low[a]) / size)
+            outside |= c < -1 or c > high[a] + 1
+            cell[a] = np.int64(c) if not outside else 0
+        if outside:
+            continue
+        best, best_label, tied = np.inf, np.int64(-1), False
+        for code in range(3**dims):
+            target, rest, valid = 0, code, True
+            for a in range(dims):
+                c = cell[a] + rest % 3 - 1
+                rest //= 3
+                valid &= 0 <= c <= high[a]
+                target += c * stride[a]
+            if not valid:
+                continue
+            r = np.searchsorted(sorted_key, target)
+            while r < len(sorted_key) and sorted_key[r] == target:
+                k = order[r]
+                r += 1
+                total = 0.0
+                for a in range(dims):
+                    gap = points[i, a] - anchors[k, a]
+                    total += gap * gap
+                if total < best:
+                    best, best_label, tied = total, labels[k], False
+                elif total == best and labels[k] != best_label:
+                    tied = True
+        if best < squared:
+            if tied:
+                return out, False
+            out[i] = best_label
+    return out, True
+
+
+@kernel
+def _nearest_labels(
+    points: np.ndarray, anchors: np.ndarray, labels: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """`nearest_label` by every distance (squared, summed axis by axis as the k-d tree
+    sums it). Not sure (False) when anchors of two labels are nearest at once."""
+    out = np.empty(len(points), dtype=np.int64)
+    for i in range(len(points)):
+        best, best_label, tied = np.inf, np.int64(-1), False
+        for k in range(len(anchors)):
+            total = 0.0
+            for a in range(points.shape[1]):
+                gap = points[i, a] - anchors[k, a]
+                total += gap * gap
+            if total < best:
+                best, best_label, tied = total, labels[k], False
+            elif total == best and labels[k] != best_label:
+                tied = True
+        if tied:
+            return out, False
+        out[i] = best_label
+    return out, True
 
 
 def stable_order(labels: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from treetraits.pipeline.classify import (
     roughness_of_groups,
     shape_of,
 )
-from treetraits.pipeline.clustering import euclidean_clusters, planar_clusters, stable_order
+from treetraits.pipeline.clustering import euclidean_clusters, nearest_label, stable_order
 from treetraits.pipeline.config import (
     ClassifyConfig,
     ClusterConfig,
@@ -544,11 +544,8 @@ def _blobs_under(
     crown_index = np.flatnonzero(crown & (labels >= 0))
     if not blobs or len(crown_index) == 0:
         return np.full(len(blobs), -1, dtype=np.int64)
-    from scipy.spatial import cKDTree
-
     centres = np.array([blob.centre for blob in blobs])
-    _, nearest_voxel = cKDTree(voxels[crown_index, :2]).query(centres)
-    return labels[crown_index[nearest_voxel]]
+    return nearest_label(centres, voxels[crown_index, :2], labels[crown_index])
 
 
 def _stems(
@@ -619,7 +616,7 @@ def _band_blobs(
     xy = band_xyz[:, :2]
     # Clustered in x-y alone: the same pairs as with z = 0, one dimension less to search.
     found = []
-    for mine in _groups(planar_clusters(xy, 0.25)):
+    for mine in _groups(euclidean_clusters(xy, 0.25)):
         if len(mine) < config.min_trunk_points:
             continue
         part = xy[mine]

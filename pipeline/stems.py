@@ -27,8 +27,9 @@ from functools import cached_property
 
 import numpy as np
 
+from treetraits.jit import kernel, warm_up
 from treetraits.pipeline.classify import median, roughness
-from treetraits.pipeline.clustering import stable_order
+from treetraits.pipeline.clustering import kernel_layout, stable_order
 from treetraits.pipeline.config import ClassifyConfig, ClusterConfig
 
 # The VLP-16's rings are 2 deg apart: on an upright surface at range r they land
@@ -85,9 +86,8 @@ class StemSearch:
     def top_slope(self) -> float:
         """The highest ring's elevation (+15 deg on a VLP-16, +10 on a Puck Hi-Res): a
         column near the robot runs out of the field of view before it reaches its top."""
-        xyz, lidar_xyz = self.xyz, self.lidar_xyz
-        reach_all = np.hypot(xyz[:, 0] - lidar_xyz[0], xyz[:, 1] - lidar_xyz[1])
-        return float(np.max((xyz[:, 2] - lidar_xyz[2]) / np.maximum(reach_all, 0.1)))
+        x, y, z = (float(v) for v in self.lidar_xyz)
+        return _top_slope(kernel_layout(self.xyz), x, y, z)
 
     @cached_property
     def cells(self) -> _Cells:
@@ -184,17 +184,69 @@ class _Cells:
     def around(self, spot: np.ndarray) -> np.ndarray:
         """Indices (increasing) of the returns in the 3 x 3 cells around `spot`: every
         return within `reach` of it, and some farther."""
-        i, j = np.floor((np.asarray(spot) - self.origin) / self.size).astype(np.int64)
-        j_low, j_high = max(j - 1, 0), min(j + 1, self.shape[1] - 1)
-        parts = []
-        for row in range(max(i - 1, 0), min(i + 1, self.shape[0] - 1) + 1):
-            if j_low <= j_high:
-                lo, hi = np.searchsorted(
-                    self.sorted_cells,
-                    (row * self.shape[1] + j_low, row * self.shape[1] + j_high + 1),
-                )
-                parts.append(self.order[lo:hi])
-        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+        return _around(
+            float(spot[0]) - float(self.origin[0]),
+            float(spot[1]) - float(self.origin[1]),
+            self.size,
+            int(self.shape[0]),
+            int(self.shape[1]),
+            self.sorted_cells,
+            self.order,
+        )
+
+
+@kernel
+def _around(
+    dx: float,
+    dy: float,
+    size: float,
+    rows: int,
+    cols: int,
+    sorted_cells: np.ndarray,
+    order: np.ndarray,
+) -> np.ndarray:
+    """`_Cells.around` of a spot `dx`, `dy` from the grid's origin: each row's run of
+    the 3 cells in `sorted_cells`, their returns' indices gathered and sorted."""
+    i, j = np.int64(np.floor(dx / size)), np.int64(np.floor(dy / size))
+    j_low, j_high = max(j - 1, 0), min(j + 1, cols - 1)
+    row_low, row_high = max(i - 1, 0), min(i + 1, rows - 1)
+    if j_low > j_high or row_low > row_high:
+        return np.zeros(0, dtype=np.int64)
+    runs = np.empty((row_high - row_low + 1, 2), dtype=np.int64)
+    total = 0
+    for r in range(len(runs)):
+        row = (row_low + r) * cols
+        runs[r, 0] = np.searchsorted(sorted_cells, row + j_low)
+        runs[r, 1] = np.searchsorted(sorted_cells, row + j_high + 1)
+        total += runs[r, 1] - runs[r, 0]
+    found = np.empty(total, dtype=np.int64)
+    at = 0
+    for r in range(len(runs)):
+        for k in range(runs[r, 0], runs[r, 1]):
+            found[at] = order[k]
+            at += 1
+    return np.sort(found)  # distinct indices: any sort gives this order
+
+
+@kernel
+def _top_slope(xyz: np.ndarray, lidar_x: float, lidar_y: float, lidar_z: float) -> float:
+    """`StemSearch.top_slope` in one pass: each return's height over its reach (no less
+    than 0.1 m) from the LiDAR, the largest; NaN if any is (as np.max gives it)."""
+    top = -np.inf
+    for k in range(len(xyz)):
+        reach = np.hypot(xyz[k, 0] - lidar_x, xyz[k, 1] - lidar_y)
+        slope = (xyz[k, 2] - lidar_z) / (0.1 if reach < 0.1 else reach)
+        if np.isnan(slope):
+            return np.nan
+        top = max(top, slope)
+    return top
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The stem search's kernels compiled for the types a scan gives them."""
+    _around(0.5, 0.5, 1.0, 2, 2, np.arange(3), np.arange(3))
+    _top_slope(np.ones((2, 3)), 0.0, 0.0, 0.5)
 
 
 def max_gap_m(reach_m: float, voxel_m: float) -> float:

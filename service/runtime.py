@@ -75,8 +75,10 @@ PIPELINE_MODULES = (
     "treetraits.pipeline.fusion",
     # Every module with compiled kernels (treetraits.jit), for their warm-ups.
     "treetraits.drivers.velodyne.packet",
+    "treetraits.pipeline.clustering",
     "treetraits.pipeline.deskew",
     "treetraits.pipeline.detection",
+    "treetraits.pipeline.stems",
     "treetraits.pipeline.terrain",
 )
 

@@ -17,7 +17,8 @@ from treetraits.pipeline.clustering import (
     attach,
     connected_labels,
     euclidean_clusters,
-    planar_clusters,
+    kdtree_clusters,
+    nearest_label,
 )
 from treetraits.pipeline.config import (
     ClassifyConfig,
@@ -198,26 +199,63 @@ def test_kdtree_and_dbscan_cluster_a_twin_scan_alike(tree_scan):
     assert np.array_equal(a, b)
 
 
-def test_planar_clusters_are_the_kdtrees():
-    """The grid's labels against the k-d tree's, past the size where the grid takes over:
-    dense blobs (cells joined without a look), sparse scatter (pairs looked at 2-3 cells
-    apart), chains just under and just over the tolerance along both axes and diagonally."""
-    rng = np.random.default_rng(7)
-    blobs = np.vstack([rng.normal(c, 0.08, (300, 2)) for c in ([0, 0], [0.6, 0.1], [3, -2])])
-    scatter = rng.uniform(-6, 6, (1500, 2))
+def _clouds_for_the_grid(dims: int) -> list[np.ndarray]:
+    """Dense blobs (cells joined without a look), sparse scatter (pairs looked at cells
+    apart), chains just under and just over 0.25 and 0.5 along the axes and diagonally."""
+    rng = np.random.default_rng(7 + dims)
+    blobs = np.vstack(
+        [rng.normal(c[:dims], 0.08, (300, dims)) for c in ([0, 0, 0], [0.6, 0.1, 0.2], [3, -2, 1])]
+    )
+    scatter = rng.uniform(-6, 6, (1500, dims))
     steps = np.arange(40)[:, None]
+    unit = np.eye(dims)
+    diagonal = np.ones(dims) / np.sqrt(dims)
     chains = np.vstack(
         [
-            [10, 10] + steps * [0.249, 0],
-            [10, 12] + steps * [0.251, 0],
-            [10, 14] + steps * [0, 0.2499],
-            [20, 10] + steps * [0.176, 0.176],
-            [20, 14] + steps * [0.177, 0.177],
+            np.full(dims, 10.0) + 2 * k * unit[-1] + steps * step * direction
+            for k, (step, direction) in enumerate(
+                [
+                    (0.249, unit[0]),
+                    (0.251, unit[0]),
+                    (0.2499, unit[1]),
+                    (0.25 - 1e-12, diagonal),
+                    (0.25 + 1e-12, diagonal),
+                    (0.4999, unit[-1]),
+                    (0.5, diagonal),
+                    (0.5001, unit[1]),
+                ]
+            )
         ]
     )
-    for xy in (np.vstack([blobs, scatter, chains]), scatter, np.vstack([chains, blobs])):
+    return [np.vstack([blobs, scatter, chains]), scatter, np.vstack([chains, blobs]), blobs[:5]]
+
+
+@pytest.mark.parametrize("dims", [2, 3])
+def test_the_grid_kernel_clusters_as_the_kdtree(dims):
+    """The compiled grid's labels are the k-d tree's pairs' components (what clustering
+    computed before), numbered alike, in x-y and in x-y-z."""
+    for cloud in _clouds_for_the_grid(dims):
         for tolerance in (0.25, 0.5):
-            assert np.array_equal(planar_clusters(xy, tolerance), euclidean_clusters(xy, tolerance))
+            expected = kdtree_clusters(cloud, tolerance)
+            assert np.array_equal(euclidean_clusters(cloud, tolerance), expected)
+            # A strided or float32 view is clustered as its float64 copy.
+            assert np.array_equal(euclidean_clusters(cloud.T.copy().T, tolerance), expected)
+
+
+def test_the_grid_kernel_clusters_a_twin_scan_as_the_kdtree(tree_scan):
+    xyz = to_base(tree_scan.points, DEFAULT_T_BASE_LIDAR)
+    xyz = xyz[xyz[:, 2] > 0.2]
+    _, voxels = voxel_grid(xyz, 0.2)
+    for cloud, tolerance in ((voxels, 0.5), (xyz[:, :2], 0.25), (xyz[:3000], 0.5)):
+        assert np.array_equal(
+            euclidean_clusters(cloud, tolerance), kdtree_clusters(cloud, tolerance)
+        )
+
+
+def test_a_grid_too_wide_for_its_keys_is_left_to_the_kdtree():
+    cloud = np.array([[0.0, 0, 0], [0.3, 0, 0], [1e9, 1e9, 1e9], [1e9, 1e9, 1e9 + 0.4]])
+    assert euclidean_clusters(cloud, 0.5).tolist() == [0, 0, 1, 1]
+    assert euclidean_clusters(cloud[[0, 0, 1]], 0.0).tolist() == [0, 0, 1]  # no grid
 
 
 def test_a_box_short_of_a_width_proves_the_group_narrower():
@@ -265,6 +303,42 @@ def test_attach_takes_the_nearest_anchor_within_reach():
     anchors = np.array([[0.0, 0, 0], [1.0, 0, 0]])
     labels = attach(np.array([[0.2, 0, 0], [0.9, 0, 0], [5, 0, 0]]), anchors, np.array([4, 7]), 0.5)
     assert labels.tolist() == [4, 7, -1]
+
+
+def _kdtree_attach(points, anchors, labels, tolerance):
+    """`attach` as the k-d tree's bounded query gave it (the reference)."""
+    from scipy.spatial import cKDTree
+
+    distance, index = cKDTree(anchors).query(points, distance_upper_bound=tolerance)
+    return np.where(np.isfinite(distance), labels[np.minimum(index, len(anchors) - 1)], -1)
+
+
+def test_attach_and_nearest_label_are_the_kdtrees():
+    """The compiled searches against the k-d tree's queries: random clouds in 2-D and
+    3-D, points exactly at the tolerance (not within it, as the tree's bound is strict),
+    points far outside the anchors' box, and equidistant anchors of two labels (the
+    tree's pick, whatever it is)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(12)
+    for dims in (2, 3):
+        for _trial in range(20):
+            anchors = rng.uniform(-3, 3, (int(rng.integers(1, 400)), dims))
+            labels = rng.integers(0, 5, len(anchors))
+            points = np.vstack([rng.uniform(-4, 4, (300, dims)), rng.uniform(-50, 50, (5, dims))])
+            on_edge = anchors[: min(5, len(anchors))] + 0.5 * np.eye(dims)[0]
+            points = np.vstack([points, on_edge, anchors[:3]])
+            assert np.array_equal(
+                attach(points, anchors, labels, 0.5), _kdtree_attach(points, anchors, labels, 0.5)
+            )
+            nearest = cKDTree(anchors).query(points[:20])[1]
+            assert np.array_equal(nearest_label(points[:20], anchors, labels), labels[nearest])
+    anchors = np.array([[-0.25, 0.0], [0.25, 0.0], [3.0, 0.0]])
+    for labels in (np.array([1, 2, 3]), np.array([2, 1, 3])):
+        middle = np.array([[0.0, 0.0], [2.9, 0.0]])
+        tree = _kdtree_attach(middle, anchors, labels, 0.5)
+        assert np.array_equal(attach(middle, anchors, labels, 0.5), tree)
+        assert np.array_equal(nearest_label(middle, anchors, labels), tree)
 
 
 def test_hull_area_and_volume_of_a_box():

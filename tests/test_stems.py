@@ -14,7 +14,7 @@ from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.config import ClusterConfig, DetectionConfig
 from treetraits.pipeline.detection import detect
-from treetraits.pipeline.stems import column_top, max_gap_m
+from treetraits.pipeline.stems import StemSearch, _Cells, column_top, max_gap_m
 from treetraits.sim.clutter import box, cylinder, person, tube, weed_clump
 from treetraits.sim.orchard import Ground, TreeSpec, tree_mesh
 
@@ -116,3 +116,34 @@ def test_column_top_climbs_until_a_gap():
     assert column_top(np.array([1.0]), 0.32, 0.3) == pytest.approx(0.32)
     # One ring gap at 10 m is 0.35 m: a column there may miss one and a half.
     assert max_gap_m(10.0, 0.2) == pytest.approx(1.5 * 10 * math.tan(math.radians(2)) + 0.2)
+
+
+def _around_by_numpy(cells: _Cells, spot: np.ndarray) -> np.ndarray:
+    """`_Cells.around` as NumPy computed it before the kernel (the reference)."""
+    i, j = np.floor((np.asarray(spot) - cells.origin) / cells.size).astype(np.int64)
+    j_low, j_high = max(j - 1, 0), min(j + 1, cells.shape[1] - 1)
+    parts = []
+    for row in range(max(i - 1, 0), min(i + 1, cells.shape[0] - 1) + 1):
+        if j_low <= j_high:
+            lo, hi = np.searchsorted(
+                cells.sorted_cells,
+                (row * cells.shape[1] + j_low, row * cells.shape[1] + j_high + 1),
+            )
+            parts.append(cells.order[lo:hi])
+    return np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+
+
+def test_the_stem_search_kernels_are_numpys_to_the_bit():
+    """The returns around a spot and the top ring's slope, compiled, against the NumPy
+    formulation they replace: spots inside, on the edges of and far outside the grid,
+    returns right above and beside the LiDAR (reach under 0.1 m)."""
+    rng = np.random.default_rng(21)
+    xyz = np.vstack([rng.uniform([-15, -10, -0.5], [25, 10, 5], (20000, 3)), [[0, 0, 2.0]]])
+    lidar_xyz = np.array([0.05, -0.02, 0.7])
+    search = StemSearch(xyz, xyz[:, 2], np.zeros(len(xyz), np.uint8), lidar_xyz, ClusterConfig())
+    reach_all = np.hypot(xyz[:, 0] - lidar_xyz[0], xyz[:, 1] - lidar_xyz[1])
+    expected = np.max((xyz[:, 2] - lidar_xyz[2]) / np.maximum(reach_all, 0.1))
+    assert np.float64(search.top_slope).tobytes() == expected.tobytes()
+    spots = np.vstack([rng.uniform([-17, -12], [27, 12], (500, 2)), [[-15, -10], [25, 10]]])
+    for spot in np.vstack([spots, [[-100, 0], [0, 100], [1e6, -1e6]]]):
+        assert np.array_equal(search.cells.around(spot), _around_by_numpy(search.cells, spot))
