@@ -10,8 +10,9 @@ from treetraits.jit import kernel, warm_up
 def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree") -> np.ndarray:
     """Single-linkage clusters of points (N x 2 or N x 3): two points closer than
     `tolerance` share a cluster. Labels 0.. numbered by each cluster's first point
-    (deterministic). "kdtree": the pairs the k-d tree lists (squared distances, compared
-    as it compares them), linked on a grid (`_grid_labels`)."""
+    (deterministic). "kdtree" (the configs' name): the pairs the k-d tree would list
+    (squared distances, compared as it compares them), found on a grid of cells
+    (`_grid_labels`); the k-d tree itself where no grid fits."""
     n = len(xyz)
     if n == 0:
         return np.zeros(0, dtype=np.int64)

@@ -188,7 +188,8 @@ class ClusterConfig:
     # holds 5-20 firings of that beam and an object just past the cluster's edge that
     # hides its top is not missed.
     top_window_deg: float = 1.0
-    # "kdtree": scipy cKDTree pairs + connected components; "dbscan": open3d
+    # "kdtree" (the name kept for configs): pairs within the tolerance found on a grid of
+    # cells by a compiled kernel, scipy's cKDTree where no grid fits; "dbscan": open3d
     # `cluster_dbscan(eps, min_points=1)`. Same clusters; see docs for the timing.
     method: str = "kdtree"
 
