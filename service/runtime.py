@@ -83,6 +83,17 @@ PIPELINE_MODULES = (
 )
 
 
+def load_pipeline() -> None:
+    """Import what the pipeline imports where it is used, and compile every kernel or load
+    it from numba's cache (treetraits.jit). The service does it before READY;
+    `make install` once as the service's user, to fill the unit's cache."""
+    from treetraits.jit import compile_all
+
+    for module in PIPELINE_MODULES:
+        importlib.import_module(module)
+    compile_all()
+
+
 @dataclass
 class Counters:
     """The loop's own counts, beside the workers'."""
@@ -251,16 +262,12 @@ class Service:
                 worker.play_video(start_ns)
 
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
-        from treetraits.jit import compile_all
         from treetraits.service.replay import make_processor
 
         self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
-        # What the pipeline imports where it is used, imported (and its kernels compiled)
-        # before READY: the first scans would otherwise wait ~1-2 s for them, a backlog
-        # past max_backlog_s.
-        for module in PIPELINE_MODULES:
-            importlib.import_module(module)
-        compile_all()
+        # Before READY: the first scans would otherwise wait ~1-2 s for the imports (and
+        # longer for a kernel to compile), a backlog past max_backlog_s.
+        load_pipeline()
         if self.cfg.service.max_backlog_s > 0:
             limit_ns = round(self.cfg.service.max_backlog_s * 1e9)
             # Items carry their receive time on the host's clock (`Message.log_time`).

@@ -16,8 +16,10 @@
 #
 # With DESTDIR set, files go under DESTDIR and nothing touches the running system (no
 # user, no sysctl, no udev, no systemctl). Environment: DESTDIR, PREFIX, PYTHON.
-# --uninstall removes the unit, rules, sysctl file and venv; it keeps the config, the
-# data in /var/lib/treetraits and the user.
+# A live install with the venv also compiles the kernels as the user into the unit's cache
+# (/var/cache/treetraits/numba), so that the first start does not.
+# --uninstall removes the unit, rules, sysctl file, venv and that cache; it keeps the
+# config, the data in /var/lib/treetraits and the user.
 set -euo pipefail
 
 SRC="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -126,11 +128,28 @@ make_venv() {
     say "installed treetraits $("$venv_dir/bin/python" -c 'import treetraits; print(treetraits.__version__)') into $venv_dir"
 }
 
+# The unit's NUMBA_CACHE_DIR (CacheDirectory=treetraits), filled now as the service's user:
+# its first start then loads the compiled kernels (~0.3 s) instead of compiling them before
+# READY (~13 s on the development machine, several times that on a Xavier).
+CACHE_DIR=/var/cache/treetraits
+
+compile_kernels() {
+    local python="$PREFIX/venv/bin/python"
+    install -d -m 0750 -o "$SERVICE_USER" -g "$SERVICE_USER" "$CACHE_DIR" "$CACHE_DIR/numba"
+    if (cd / && runuser -u "$SERVICE_USER" -- env NUMBA_CACHE_DIR="$CACHE_DIR/numba" \
+        "$python" -c 'from treetraits.service.runtime import load_pipeline; load_pipeline()'); then
+        say "compiled the kernels into $CACHE_DIR/numba"
+    else
+        warn "could not compile the kernels into $CACHE_DIR/numba: the service compiles them at its first start"
+    fi
+}
+
 do_install() {
     local etc="$DESTDIR/etc" unit_tmp changed_rules=no changed_sysctl=no
     [ -f "$SRC/systemd/config.toml" ] || die "$SRC/systemd/config.toml is missing: the default config comes from the checkout"
     [ "$live" = yes ] && ensure_user
     [ "$venv" = yes ] && make_venv
+    [ "$live" = yes ] && [ "$venv" = yes ] && compile_kernels
 
     # The unit names the venv's entry point: follow PREFIX.
     unit_tmp=$(mktemp)
@@ -184,6 +203,10 @@ do_uninstall() {
         rm -rf "$DESTDIR$PREFIX/venv"
         say "removed $DESTDIR$PREFIX/venv"
         rmdir "$DESTDIR$PREFIX" 2>/dev/null || true
+    fi
+    if [ -z "$DESTDIR" ] && [ -d "$CACHE_DIR" ]; then
+        rm -rf "$CACHE_DIR"
+        say "removed $CACHE_DIR (the compiled kernels)"
     fi
     systemd_running && systemctl daemon-reload
     udevd_running && udevadm control --reload-rules
