@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from treetraits.jit import kernel, warm_up
+from treetraits.pipeline.clustering import kernel_layout
 from treetraits.pipeline.config import ClassifyConfig
 
 TREE = "tree"
@@ -107,13 +109,42 @@ def roughness_of_groups(
     """`roughness` of each group of consecutive returns (`sizes[k]` of them) at once: a
     scan's clusters in one pass, not ~25 NumPy calls each. The groups are kept apart by a
     leading sort key and by no pair or triple spanning two of them; NaN for a group of
-    fewer than 3 returns or 5 triples."""
-    groups = len(sizes)
-    owner = np.repeat(np.arange(groups), sizes)
+    fewer than 3 returns or 5 triples. The bearings, their order and the gaps between
+    them are NumPy's (its arctangent and complex exponential are SIMD code a kernel would
+    not match to the bit); what follows them is one kernel (`_roughness_after_gaps`),
+    to the bit `roughness_of_groups_numpy`'s."""
+    if points.dtype != np.float64:  # the kernel's arithmetic is float64's
+        return roughness_of_groups_numpy(points, ring, lidar_xy, sizes)
+    owner, order, gap = _ring_gaps(points, ring, lidar_xy, sizes)
+    return _roughness_after_gaps(
+        kernel_layout(points[order]),
+        kernel_layout(ring[order], np.int64),
+        owner[order],
+        gap,
+        kernel_layout(sizes, np.int64),
+    )
+
+
+def _ring_gaps(
+    points: np.ndarray, ring: np.ndarray, lidar_xy: np.ndarray, sizes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each return's group, the order by group, ring and bearing, and the bearing gap
+    (rad, wrapped) between consecutive returns in that order."""
+    owner = np.repeat(np.arange(len(sizes)), sizes)
     azimuth = np.arctan2(points[:, 1] - lidar_xy[1], points[:, 0] - lidar_xy[0])
     order = np.lexsort((azimuth, ring, owner))  # stable: each group's own lexsort
-    p, r, a, owner = points[order], ring[order], azimuth[order], owner[order]
-    gap = np.abs(np.angle(np.exp(1j * np.diff(a))))
+    gap = np.abs(np.angle(np.exp(1j * np.diff(azimuth[order]))))
+    return owner, order, gap
+
+
+def roughness_of_groups_numpy(
+    points: np.ndarray, ring: np.ndarray, lidar_xy: np.ndarray, sizes: np.ndarray
+) -> np.ndarray:
+    """`roughness_of_groups` in NumPy calls: for points other than float64, and the
+    formulation the kernel is held to (tests)."""
+    groups = len(sizes)
+    owner, order, gap = _ring_gaps(points, ring, lidar_xy, sizes)
+    p, r, owner = points[order], ring[order], owner[order]
     same = (r[1:] == r[:-1]) & (owner[1:] == owner[:-1])
     step = _median_of_groups(gap[same], owner[1:][same], groups)
     adjacent = same & (gap <= 2.5 * step[owner[1:]])  # NaN steps: no pair, never same
@@ -123,6 +154,73 @@ def roughness_of_groups(
     found = _median_of_groups(spread, owner[1:-1][triple], groups)
     enough = (np.bincount(owner[1:-1][triple], minlength=groups) >= 5) & (sizes >= 3)
     return np.where(enough, found, math.nan)
+
+
+@kernel
+def _roughness_after_gaps(
+    p: np.ndarray, r: np.ndarray, owner: np.ndarray, gap: np.ndarray, sizes: np.ndarray
+) -> np.ndarray:
+    """`roughness_of_groups_numpy` from the sorted returns `p`, their rings and groups
+    (`owner`, non-decreasing) and the `gap` after each on: the same pairs, triples,
+    distances and medians, each group's in one run over its returns."""
+    n, groups = len(owner), len(sizes)
+    found = np.full(groups, np.nan)
+    values = np.empty(max(n, 1))
+    start = 0
+    while start < n:
+        group, end = owner[start], start
+        while end < n and owner[end] == group:
+            end += 1
+        # The median step between returns of one ring (pair i: returns i and i + 1).
+        count = 0
+        for i in range(start, end - 1):
+            if r[i + 1] == r[i]:
+                values[count] = gap[i]
+                count += 1
+        limit = 2.5 * _kernel_median(values[:count])
+        # The spread of each triple of adjacent returns (i - 1, i, i + 1).
+        count = 0
+        for i in range(start + 1, end - 1):
+            if _adjacent(r, gap, i - 1, limit) and _adjacent(r, gap, i, limit):
+                values[count] = _off_middle(p, i)
+                count += 1
+        if count >= 5 and sizes[group] >= 3:
+            found[group] = _kernel_median(values[:count])
+        start = end
+    return found
+
+
+@kernel
+def _adjacent(r: np.ndarray, gap: np.ndarray, i: int, limit: float) -> bool:
+    """Returns i and i + 1 of one group consecutive firings: one ring, a gap within the
+    limit (never with a NaN limit)."""
+    return r[i + 1] == r[i] and gap[i] <= limit
+
+
+@kernel
+def _off_middle(p: np.ndarray, i: int) -> float:
+    """Distance of return i from the midpoint of returns i - 1 and i + 1, summed as
+    `np.linalg.norm(..., axis=1)` sums the squares of a row."""
+    total = 0.0
+    for axis in range(3):
+        d = p[i, axis] - (p[i - 1, axis] + p[i + 1, axis]) / 2
+        total = total + d * d if axis else d * d
+    return math.sqrt(total)
+
+
+@kernel
+def _kernel_median(values: np.ndarray) -> float:
+    """`median` of a 1-D float array: the same middle values by one partition (numba's
+    sort is several times slower on the many equal gaps), NaN when any value is."""
+    n = len(values)
+    if n == 0:
+        return math.nan
+    for value in values:
+        if math.isnan(value):
+            return math.nan
+    half = n // 2
+    part = np.partition(values, half)
+    return part[half] if n % 2 else (part[:half].max() + part[half]) / 2
 
 
 def _median_of_groups(values: np.ndarray, owner: np.ndarray, groups: int) -> np.ndarray:
@@ -198,3 +296,16 @@ class Votes:
             return TREE
         reasons = [(n, r) for r, n in self.counts.items() if r != TREE]
         return max(reasons, key=lambda item: (item[0], -REASONS.index(item[1])))[1]
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The roughness kernel compiled for the types a scan gives it: two groups of float64
+    returns on uint8 rings (the ring arrays of `points`)."""
+    azimuth = np.linspace(-0.2, 0.2, 12)
+    xyz = np.column_stack([5 * np.cos(azimuth), 5 * np.sin(azimuth), np.ones(12)])
+    roughness_of_groups(xyz, np.zeros(12, dtype=np.uint8), np.zeros(2), np.array([7, 5]))
+    # The helpers too, as clustering's: a caller loaded from the cache compiles none.
+    _adjacent(np.zeros(2, dtype=np.int64), np.zeros(2), 0, 0.5)
+    _off_middle(xyz, 1)
+    _kernel_median(np.zeros(3))

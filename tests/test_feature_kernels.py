@@ -1,0 +1,160 @@
+"""The compiled steps of the clusters' features (`treetraits.jit` kernels) give the same
+bits as the NumPy formulations they replaced: the roughness along the rings and the
+beam-above test, on the groups and clusters a ray-cast VLP-16 scan of trees, a person, a
+post and a wall gives them, and on edge cases of the arithmetic (NaN, the +-pi seam)."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import pytest
+
+from tests.test_classify import scan_of
+from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
+from treetraits.pipeline import classify, detection, visibility
+from treetraits.pipeline.classify import roughness_of_groups, roughness_of_groups_numpy
+from treetraits.pipeline.config import DetectionConfig
+from treetraits.pipeline.visibility import BeamsAbove
+from treetraits.sim.clutter import box, cylinder, person
+from treetraits.sim.orchard import Ground, TreeSpec, tree_mesh
+
+TREES = (
+    TreeSpec("A", "1", 4.0, -3.0, 0.45, 0.08, 1.35, 1.2),
+    TreeSpec("B", "1", 12.0, 3.0, 0.45, 0.08, 1.35, 1.2),
+    TreeSpec("C", "1", -4.0, 2.0, 0.3, 0.04, 0.5, 0.45),
+    TreeSpec("D", "1", -9.0, -4.5, 0.45, 0.08, 1.75, 1.3),
+)
+
+
+@functools.cache
+def scan_points() -> np.ndarray:
+    rng = np.random.default_rng(7)
+    meshes = [tree_mesh(spec, Ground(), rng) for spec in TREES]
+    meshes += [person(5.0, 1.5, 0.0), cylinder(3.0, 4.0, 0.0, 2.0, 0.05)]
+    meshes.append(box(-6.0, 5.0, 0.0, 2.5, 6.0, 0.2))
+    return scan_of(*meshes).points
+
+
+@functools.cache
+def detected_calls() -> tuple[list[tuple], list[tuple]]:
+    """The arguments `detect` gives the roughness and the beam-above test on the scan."""
+    rough_calls, top_calls = [], []
+    saved, original = detection.roughness_of_groups, BeamsAbove.top_seen
+
+    def rough(*args):
+        rough_calls.append(args)
+        return saved(*args)
+
+    def top_seen(self, members, window, reach):
+        top_calls.append((self, members, window, reach))
+        return original(self, members, window, reach)
+
+    detection.roughness_of_groups, BeamsAbove.top_seen = rough, top_seen
+    try:
+        detection.detect(scan_points(), None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
+    finally:
+        detection.roughness_of_groups, BeamsAbove.top_seen = saved, original
+    return rough_calls, top_calls
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and np.array_equal(a.view(np.int64), b.view(np.int64))
+
+
+def test_roughness_kernel_is_numpys_to_the_bit_on_a_scan():
+    rough_calls, _ = detected_calls()
+    assert len(rough_calls) >= 2  # the trunks' bark, the clusters' features
+    found = [roughness_of_groups(*args) for args in rough_calls]
+    for args, values in zip(rough_calls, found, strict=True):
+        assert args[0].dtype == np.float64 and args[1].dtype == np.uint8  # the kernel's
+        assert same_bits(values, roughness_of_groups_numpy(*args))
+    every = np.concatenate(found)
+    assert np.isfinite(every).sum() >= 6 and np.isnan(every).any()
+    assert every[np.isfinite(every)].min() < 0.05 < every[np.isfinite(every)].max()
+
+
+def test_roughness_kernel_is_numpys_to_the_bit_at_the_edges():
+    """Empty and tiny groups, even and odd counts, repeated bearings, a NaN return (its
+    group's median is NaN), rings given as int64."""
+    xyz, rings, lidar_xy, _ = detected_calls()[0][-1]
+    rng = np.random.default_rng(3)
+    points = xyz.copy()
+    points[5] = np.nan
+    points[40:60] = points[40]  # one bearing repeated
+    sizes = np.array([0, 1, 2, 3, 30, 31, 0])
+    sizes = np.append(sizes, len(points) - sizes.sum())
+    for ring in (rings, rings.astype(np.int64), rng.integers(0, 2, len(rings))):
+        found = roughness_of_groups(points, ring, lidar_xy, sizes)
+        assert same_bits(found, roughness_of_groups_numpy(points, ring, lidar_xy, sizes))
+    assert np.isnan(found[:4]).all()  # too few returns
+
+
+def test_a_median_of_an_even_count_and_a_nan_as_numpy_gives_them():
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 5, 6, 101, 1000):
+        values = np.round(rng.uniform(0, 1, n), 2)  # many equal values, as the gaps are
+        assert classify._kernel_median(values) == np.median(values)
+        values[n // 2] = np.nan
+        assert math.isnan(classify._kernel_median(values))
+
+
+def test_top_seen_kernels_are_numpys_on_a_scan():
+    _, top_calls = detected_calls()
+    assert len(top_calls) >= 6
+    answers = []
+    for beams, members, _, _ in top_calls:
+        for window in (0.0, math.radians(1.0), 0.2):
+            for reach in (0.0, 0.5, 3.0):
+                seen = beams.top_seen(members, window, reach)
+                assert seen is beams.top_seen_numpy(members, window, reach)
+                answers.append(seen)
+    assert any(answers) and not all(answers)
+
+
+def test_top_seen_kernels_across_the_seam_and_with_nan():
+    """Members on either side of +-pi, and a NaN height and range, as NumPy's argmax,
+    min and max take them."""
+    rng = np.random.default_rng(1)
+    points = scan_points().copy()
+    points["x"] = -np.abs(points["x"])  # everything behind: bearings near +-pi
+    beams = BeamsAbove(points)
+    seam = np.flatnonzero((np.abs(points["y"]) < 1.0) & (points["ring"] < 12))
+    answers = []
+    for _ in range(200):
+        members = rng.choice(seam, size=rng.integers(1, 40), replace=False)
+        for window in (0.0, 0.05):
+            seen = beams.top_seen(members, window, 0.5)
+            assert seen is beams.top_seen_numpy(members, window, 0.5)
+            answers.append(seen)
+    assert any(answers) and not all(answers)
+    points["z"][seam[:3]] = np.nan
+    beams = BeamsAbove(points)
+    for members in (seam[:10], seam[2:12], seam[5:15]):
+        assert beams.top_seen(members, 0.05, 0.5) is beams.top_seen_numpy(members, 0.05, 0.5)
+
+
+@pytest.mark.parametrize("angle", [-7.0, -math.pi, -1e-17, 0.0, 1e-17, math.pi, 3.5, 7.0])
+def test_one_angle_wrapped_as_numpy_wraps_it(angle):
+    wrapped = visibility._wrap(np.array([angle, np.nextafter(angle, 9.0)]))
+    for value, expected in zip((angle, np.nextafter(angle, 9.0)), wrapped, strict=True):
+        assert np.float64(visibility._wrap_one(value)).view(np.int64) == expected.view(np.int64)
+
+
+def test_a_scan_compiles_nothing_beyond_the_warm_ups():
+    kernels = (
+        classify._roughness_after_gaps,
+        classify._adjacent,
+        classify._off_middle,
+        classify._kernel_median,
+        visibility._top_and_ring,
+        visibility._passed_over,
+        visibility._wrap_one,
+    )
+    classify.compile_kernels()
+    visibility.compile_kernels()
+    warmed = [list(k.signatures) for k in kernels]
+    assert all(len(signatures) == 1 for signatures in warmed)
+    detection.detect(scan_points(), None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
+    assert [list(k.signatures) for k in kernels] == warmed
