@@ -43,15 +43,13 @@ class BeamsAbove:
         x = points["x"].astype(float)
         y = points["y"].astype(float)
         z = points["z"].astype(float)
-        bearing = np.arctan2(y, x)
-        # Sorted as the uint8 rings they are: NumPy's stable sort of bytes is a radix
-        # sort, several times faster than of int64, and the order is the same.
-        order = np.argsort(points["ring"], kind="stable")
+        bearing = np.arctan2(y, x)  # NumPy's (SIMD) arctangent, not a kernel's
         self.top_ring = max(TOP_RING, int(ring.max()) if len(ring) else 0)
-        span = np.sqrt(x * x + y * y + z * z)
-        self._bearing = bearing[order]
-        self._range = span[order]
-        self._starts = np.searchsorted(ring[order], np.arange(self.top_ring + 2))
+        # The ranges, the ring order (a stable counting sort: np.argsort(kind="stable")'s
+        # order) and each ring's first return in it, in one kernel.
+        span, self._bearing, self._range, self._starts = _by_ring(
+            x, y, z, ring, bearing, self.top_ring
+        )
         # Per return in the scan's order, for the clusters' own returns: what top_seen
         # worked out again for each cluster, the same values gathered.
         self._by_point = (x, y, z, bearing, span, ring)
@@ -90,6 +88,30 @@ class BeamsAbove:
         above = _wrap(self._bearing[start:end] - centre)
         inside = (above >= low) & (above <= high)
         return not bool(np.any(self._range[start:end][inside] <= farthest + reach_m))
+
+
+@kernel
+def _by_ring(
+    x: np.ndarray, y: np.ndarray, z: np.ndarray, ring: np.ndarray, bearing: np.ndarray, top: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each return's range (`np.sqrt(x * x + y * y + z * z)`, summed in that order), and
+    the bearings and ranges sorted by ring (stable), with the start of each ring 0 to
+    `top` + 1 in them (`np.searchsorted` of the sorted rings, side left)."""
+    n = len(x)
+    span = np.empty(n)
+    starts = np.zeros(top + 2, dtype=np.int64)
+    for i in range(n):
+        span[i] = math.sqrt(x[i] * x[i] + y[i] * y[i] + z[i] * z[i])
+        starts[ring[i] + 1] += 1
+    for r in range(1, top + 2):
+        starts[r] += starts[r - 1]
+    at = starts.copy()
+    sorted_bearing, sorted_range = np.empty(n), np.empty(n)
+    for i in range(n):
+        k = at[ring[i]]
+        sorted_bearing[k], sorted_range[k] = bearing[i], span[i]
+        at[ring[i]] = k + 1
+    return span, sorted_bearing, sorted_range, starts
 
 
 @kernel

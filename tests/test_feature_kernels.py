@@ -91,6 +91,24 @@ def test_roughness_kernel_is_numpys_to_the_bit_at_the_edges():
     assert np.isnan(found[:4]).all()  # too few returns
 
 
+@pytest.mark.parametrize("data", ["scan", "spread"])
+def test_each_distance_off_the_middle_is_numpys_norm(data):
+    """Every triple, each distance alone (the medians see a few of them): the scan's
+    returns, and returns spread over four orders of magnitude, where a sum of the
+    squares in another order differs in the last bit."""
+    xyz = np.ascontiguousarray(detected_calls()[0][-1][0])
+    if data == "spread":
+        rng = np.random.default_rng(5)
+        xyz = rng.normal(size=(5000, 3)) * rng.uniform(1e-3, 10, (5000, 1))
+    d = xyz[1:-1] - (xyz[:-2] + xyz[2:]) / 2
+    want = np.linalg.norm(d, axis=1)
+    got = np.array([classify._off_middle(xyz, i) for i in range(1, len(xyz) - 1)])
+    assert len(got) > 1000 and same_bits(got, want)
+    if data == "spread":  # the data tells the orders apart
+        other = np.sqrt(d[:, 0] * d[:, 0] + (d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]))
+        assert not same_bits(other, want)
+
+
 def test_a_median_of_an_even_count_and_a_nan_as_numpy_gives_them():
     rng = np.random.default_rng(0)
     for n in (1, 2, 5, 6, 101, 1000):
@@ -135,6 +153,34 @@ def test_top_seen_kernels_across_the_seam_and_with_nan():
         assert beams.top_seen(members, 0.05, 0.5) is beams.top_seen_numpy(members, 0.05, 0.5)
 
 
+def numpy_beams(points: np.ndarray) -> tuple:
+    """`BeamsAbove`'s arrays as NumPy computed them before its kernel."""
+    ring = points["ring"].astype(np.int64)
+    x, y, z = (points[axis].astype(float) for axis in "xyz")
+    bearing = np.arctan2(y, x)
+    order = np.argsort(points["ring"], kind="stable")
+    top_ring = max(visibility.TOP_RING, int(ring.max()) if len(ring) else 0)
+    span = np.sqrt(x * x + y * y + z * z)
+    starts = np.searchsorted(ring[order], np.arange(top_ring + 2))
+    return bearing[order], span[order], starts, (x, y, z, bearing, span, ring), top_ring
+
+
+@pytest.mark.parametrize("rings", ["scan", "more", "none"])
+def test_beams_by_ring_are_numpys_to_the_bit(rings):
+    """The scan's returns; its rings shuffled up to 31 (a 32-beam cloud); no returns."""
+    points = scan_points().copy()
+    if rings == "more":
+        points["ring"] = np.random.default_rng(2).integers(0, 32, len(points))
+    elif rings == "none":
+        points = points[:0]
+    beams, (bearing, span, starts, by_point, top_ring) = BeamsAbove(points), numpy_beams(points)
+    assert beams.top_ring == top_ring == (31 if rings == "more" else 15)
+    assert same_bits(beams._bearing, bearing) and same_bits(beams._range, span)
+    assert beams._starts.dtype == starts.dtype and np.array_equal(beams._starts, starts)
+    for got, want in zip(beams._by_point, by_point, strict=True):
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+
+
 @pytest.mark.parametrize("angle", [-7.0, -math.pi, -1e-17, 0.0, 1e-17, math.pi, 3.5, 7.0])
 def test_one_angle_wrapped_as_numpy_wraps_it(angle):
     wrapped = visibility._wrap(np.array([angle, np.nextafter(angle, 9.0)]))
@@ -148,6 +194,7 @@ def test_a_scan_compiles_nothing_beyond_the_warm_ups():
         classify._adjacent,
         classify._off_middle,
         classify._kernel_median,
+        visibility._by_ring,
         visibility._top_and_ring,
         visibility._passed_over,
         visibility._wrap_one,
