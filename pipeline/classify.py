@@ -115,11 +115,12 @@ def roughness_of_groups(
     to the bit `roughness_of_groups_numpy`'s."""
     if points.dtype != np.float64:  # the kernel's arithmetic is float64's
         return roughness_of_groups_numpy(points, ring, lidar_xy, sizes)
-    owner, order, gap = _ring_gaps(points, ring, lidar_xy, sizes)
+    _, order, gap = _ring_gaps(points, ring, lidar_xy, sizes)
+    # The returns and rings read through `order` in the kernel, not gathered first.
     return _roughness_after_gaps(
-        kernel_layout(points[order]),
-        kernel_layout(ring[order], np.int64),
-        owner[order],
+        kernel_layout(points),
+        kernel_layout(ring, np.int64),
+        order,
         gap,
         kernel_layout(sizes, np.int64),
     )
@@ -158,52 +159,49 @@ def roughness_of_groups_numpy(
 
 @kernel
 def _roughness_after_gaps(
-    p: np.ndarray, r: np.ndarray, owner: np.ndarray, gap: np.ndarray, sizes: np.ndarray
+    points: np.ndarray, ring: np.ndarray, order: np.ndarray, gap: np.ndarray, sizes: np.ndarray
 ) -> np.ndarray:
-    """`roughness_of_groups_numpy` from the sorted returns `p`, their rings and groups
-    (`owner`, non-decreasing) and the `gap` after each on: the same pairs, triples,
-    distances and medians, each group's in one run over its returns."""
-    n, groups = len(owner), len(sizes)
-    found = np.full(groups, np.nan)
-    values = np.empty(max(n, 1))
-    start = 0
-    while start < n:
-        group, end = owner[start], start
-        while end < n and owner[end] == group:
-            end += 1
+    """`roughness_of_groups_numpy` from the returns, their rings, their `order` (by group,
+    ring and bearing: the groups stay where they were) and the `gap` after each one in
+    it: the same pairs, triples, distances and medians, one group after the other."""
+    found = np.full(len(sizes), np.nan)
+    values = np.empty(max(len(order), 1))
+    end = 0
+    for group in range(len(sizes)):
+        start, end = end, end + sizes[group]
         # The median step between returns of one ring (pair i: returns i and i + 1).
         count = 0
         for i in range(start, end - 1):
-            if r[i + 1] == r[i]:
+            if ring[order[i + 1]] == ring[order[i]]:
                 values[count] = gap[i]
                 count += 1
         limit = 2.5 * _kernel_median(values[:count])
         # The spread of each triple of adjacent returns (i - 1, i, i + 1).
         count = 0
         for i in range(start + 1, end - 1):
-            if _adjacent(r, gap, i - 1, limit) and _adjacent(r, gap, i, limit):
-                values[count] = _off_middle(p, i)
+            if _adjacent(ring, order, gap, i - 1, limit) and _adjacent(ring, order, gap, i, limit):
+                values[count] = _off_middle(points, order, i)
                 count += 1
         if count >= 5 and sizes[group] >= 3:
             found[group] = _kernel_median(values[:count])
-        start = end
     return found
 
 
 @kernel
-def _adjacent(r: np.ndarray, gap: np.ndarray, i: int, limit: float) -> bool:
-    """Returns i and i + 1 of one group consecutive firings: one ring, a gap within the
+def _adjacent(ring: np.ndarray, order: np.ndarray, gap: np.ndarray, i: int, limit: float) -> bool:
+    """Returns i and i + 1 in `order` consecutive firings: one ring, a gap within the
     limit (never with a NaN limit)."""
-    return r[i + 1] == r[i] and gap[i] <= limit
+    return ring[order[i + 1]] == ring[order[i]] and gap[i] <= limit
 
 
 @kernel
-def _off_middle(p: np.ndarray, i: int) -> float:
-    """Distance of return i from the midpoint of returns i - 1 and i + 1, summed as
-    `np.linalg.norm(..., axis=1)` sums the squares of a row."""
+def _off_middle(points: np.ndarray, order: np.ndarray, i: int) -> float:
+    """Distance of return i in `order` from the midpoint of returns i - 1 and i + 1,
+    summed as `np.linalg.norm(..., axis=1)` sums the squares of a row."""
+    this, before, after = order[i], order[i - 1], order[i + 1]
     total = 0.0
     for axis in range(3):
-        d = p[i, axis] - (p[i - 1, axis] + p[i + 1, axis]) / 2
+        d = points[this, axis] - (points[before, axis] + points[after, axis]) / 2
         total = total + d * d if axis else d * d
     return math.sqrt(total)
 
@@ -306,6 +304,7 @@ def compile_kernels() -> None:
     xyz = np.column_stack([5 * np.cos(azimuth), 5 * np.sin(azimuth), np.ones(12)])
     roughness_of_groups(xyz, np.zeros(12, dtype=np.uint8), np.zeros(2), np.array([7, 5]))
     # The helpers too, as clustering's: a caller loaded from the cache compiles none.
-    _adjacent(np.zeros(2, dtype=np.int64), np.zeros(2), 0, 0.5)
-    _off_middle(xyz, 1)
+    index = np.arange(12)
+    _adjacent(np.zeros(12, dtype=np.int64), index, np.zeros(11), 0, 0.5)
+    _off_middle(xyz, index, 1)
     _kernel_median(np.zeros(3))

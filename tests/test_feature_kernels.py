@@ -102,7 +102,8 @@ def test_each_distance_off_the_middle_is_numpys_norm(data):
         xyz = rng.normal(size=(5000, 3)) * rng.uniform(1e-3, 10, (5000, 1))
     d = xyz[1:-1] - (xyz[:-2] + xyz[2:]) / 2
     want = np.linalg.norm(d, axis=1)
-    got = np.array([classify._off_middle(xyz, i) for i in range(1, len(xyz) - 1)])
+    order = np.arange(len(xyz))
+    got = np.array([classify._off_middle(xyz, order, i) for i in range(1, len(xyz) - 1)])
     assert len(got) > 1000 and same_bits(got, want)
     if data == "spread":  # the data tells the orders apart
         other = np.sqrt(d[:, 0] * d[:, 0] + (d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]))
