@@ -76,8 +76,11 @@ def shape_of(
     mean_ndvi, share = math.nan, 0.0
     if ndvi is not None and len(ndvi):
         known = np.isfinite(ndvi)
-        share = float(known.mean())
-        if known.any():
+        # known.mean() sums the flags as float64 (exactly) and divides by the count:
+        # the same correctly rounded quotient, without np.mean's machinery.
+        seen = int(np.count_nonzero(known))
+        share = seen / len(ndvi)
+        if seen:
             mean_ndvi = float(ndvi[known].mean())
     if rough is None:
         rough = roughness(points, ring, lidar_xy)

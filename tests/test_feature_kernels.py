@@ -206,3 +206,25 @@ def test_a_scan_compiles_nothing_beyond_the_warm_ups():
     assert all(len(signatures) == 1 for signatures in warmed)
     detection.detect(scan_points(), None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
     assert [list(k.signatures) for k in kernels] == warmed
+
+
+def test_a_clusters_ndvi_and_share_are_numpys_means():
+    """The NDVI of a cluster is the mean of its returns' finite values and the share is
+    np.isfinite(...).mean(), to the bit, with NaN for some returns and whole clusters."""
+    points = scan_points()
+    rng = np.random.default_rng(9)
+    ndvi = rng.uniform(-0.2, 0.9, len(points))
+    ndvi[rng.uniform(size=len(points)) < 0.3] = np.nan
+    ndvi[points["x"] < -5.0] = np.nan  # clusters there have none
+    xyz = detection.to_base(points, DEFAULT_T_BASE_LIDAR)
+    of_point = {row.tobytes(): value for row, value in zip(xyz, ndvi, strict=True)}
+    clusters = detection.detect(points, ndvi, DEFAULT_T_BASE_LIDAR, DetectionConfig()).clusters
+    kinds = set()
+    for cluster in clusters:
+        values = np.array([of_point[row.tobytes()] for row in cluster.points])
+        known = np.isfinite(values)
+        want = float(values[known].mean()) if known.any() else math.nan
+        assert np.float64(cluster.ndvi).tobytes() == np.float64(want).tobytes()
+        assert cluster.shape.ndvi_share == float(known.mean())
+        kinds.add((known.all(), known.any()))
+    assert {(False, True), (False, False)} <= kinds
