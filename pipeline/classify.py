@@ -39,6 +39,9 @@ REASONS = (LOW, TALL, FLOATING, THIN, SLENDER, WIDE, SMOOTH, NOT_GREEN)
 _ANGLES = np.arange(12) * math.pi / 12
 _DIRECTIONS = np.stack([np.cos(_ANGLES), np.sin(_ANGLES)])
 _BEARINGS = np.ascontiguousarray(_DIRECTIONS.T)
+# Ring numbers one group may span for the roughness's counting sort by ring (a VLP-16's
+# span 16); wider, NumPy's lexsort orders the returns.
+_MAX_RINGS = 1024
 
 
 @dataclass(frozen=True)
@@ -112,33 +115,34 @@ def roughness_of_groups(
     """`roughness` of each group of consecutive returns (`sizes[k]` of them) at once: a
     scan's clusters in one pass, not ~25 NumPy calls each. The groups are kept apart by a
     leading sort key and by no pair or triple spanning two of them; NaN for a group of
-    fewer than 3 returns or 5 triples. The bearings, their order and the gaps between
-    them are NumPy's (its arctangent and complex exponential are SIMD code a kernel would
-    not match to the bit); what follows them is one kernel (`_roughness_after_gaps`),
-    to the bit `roughness_of_groups_numpy`'s."""
+    fewer than 3 returns or 5 triples. The bearings and the gaps between them are
+    NumPy's (its arctangent and complex exponential are SIMD code a kernel would not
+    match to the bit); their order (`_lexsort_groups`) and what follows the gaps
+    (`_roughness_after_gaps`) are kernels, to the bit `roughness_of_groups_numpy`'s."""
     if points.dtype != np.float64:  # the kernel's arithmetic is float64's
         return roughness_of_groups_numpy(points, ring, lidar_xy, sizes)
-    _, order, gap = _ring_gaps(points, ring, lidar_xy, sizes)
+    rings, counts = kernel_layout(ring, np.int64), kernel_layout(sizes, np.int64)
+    azimuth = _bearings(points, lidar_xy)
+    order = _lexsort_groups(rings, azimuth, counts)
+    if order is None:  # rings too far apart to count out
+        order = _lexsort(azimuth, ring, sizes)
     # The returns and rings read through `order` in the kernel, not gathered first.
-    return _roughness_after_gaps(
-        kernel_layout(points),
-        kernel_layout(ring, np.int64),
-        order,
-        gap,
-        kernel_layout(sizes, np.int64),
-    )
+    return _roughness_after_gaps(kernel_layout(points), rings, order, _gaps(azimuth, order), counts)
 
 
-def _ring_gaps(
-    points: np.ndarray, ring: np.ndarray, lidar_xy: np.ndarray, sizes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each return's group, the order by group, ring and bearing, and the bearing gap
-    (rad, wrapped) between consecutive returns in that order."""
-    owner = np.repeat(np.arange(len(sizes)), sizes)
-    azimuth = np.arctan2(points[:, 1] - lidar_xy[1], points[:, 0] - lidar_xy[0])
-    order = np.lexsort((azimuth, ring, owner))  # stable: each group's own lexsort
-    gap = np.abs(np.angle(np.exp(1j * np.diff(azimuth[order]))))
-    return owner, order, gap
+def _bearings(points: np.ndarray, lidar_xy: np.ndarray) -> np.ndarray:
+    """Each return's bearing (rad) from the LiDAR."""
+    return np.arctan2(points[:, 1] - lidar_xy[1], points[:, 0] - lidar_xy[0])
+
+
+def _lexsort(azimuth: np.ndarray, ring: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """The returns by group, ring and bearing (stable: each group's own lexsort)."""
+    return np.lexsort((azimuth, ring, np.repeat(np.arange(len(sizes)), sizes)))
+
+
+def _gaps(azimuth: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """The bearing gap (rad, wrapped) after each return in `order`."""
+    return np.abs(np.angle(np.exp(1j * np.diff(azimuth[order]))))
 
 
 def roughness_of_groups_numpy(
@@ -147,7 +151,10 @@ def roughness_of_groups_numpy(
     """`roughness_of_groups` in NumPy calls: for points other than float64, and the
     formulation the kernel is held to (tests)."""
     groups = len(sizes)
-    owner, order, gap = _ring_gaps(points, ring, lidar_xy, sizes)
+    azimuth = _bearings(points, lidar_xy)
+    order = _lexsort(azimuth, ring, sizes)
+    gap = _gaps(azimuth, order)
+    owner = np.repeat(np.arange(groups), sizes)
     p, r, owner = points[order], ring[order], owner[order]
     same = (r[1:] == r[:-1]) & (owner[1:] == owner[:-1])
     step = _median_of_groups(gap[same], owner[1:][same], groups)
@@ -158,6 +165,68 @@ def roughness_of_groups_numpy(
     found = _median_of_groups(spread, owner[1:-1][triple], groups)
     enough = (np.bincount(owner[1:-1][triple], minlength=groups) >= 5) & (sizes >= 3)
     return np.where(enough, found, math.nan)
+
+
+@kernel
+def _lexsort_groups(ring: np.ndarray, azimuth: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """`np.lexsort((azimuth, ring, owner))` of groups of consecutive returns (`sizes`):
+    each group's returns counted out by ring, then each ring's sorted by bearing. None
+    when a group's rings span more than `_MAX_RINGS` values (then NumPy sorts)."""
+    order = np.empty(len(ring), dtype=np.int64)
+    end = 0
+    for group in range(len(sizes)):
+        start, end = end, end + sizes[group]
+        if end == start:
+            continue
+        low, high = ring[start], ring[start]
+        for i in range(start, end):
+            low, high = min(low, ring[i]), max(high, ring[i])
+        if high - low >= _MAX_RINGS:
+            return None
+        first = np.zeros(high - low + 2, dtype=np.int64)  # each ring's start in the group
+        for i in range(start, end):
+            first[ring[i] - low + 1] += 1
+        for r in range(1, len(first)):
+            first[r] += first[r - 1]
+        at = first + start
+        for i in range(start, end):  # in index order: each ring's returns stay in it
+            order[at[ring[i] - low]] = i
+            at[ring[i] - low] += 1
+        for r in range(high - low + 1):
+            _sort_by_bearing(order, azimuth, start + first[r], start + first[r + 1])
+    return order
+
+
+@kernel
+def _sort_by_bearing(order: np.ndarray, azimuth: np.ndarray, lo: int, hi: int) -> None:
+    """Sort order[lo:hi] by bearing, equal bearings by index: the one order a stable sort
+    gives. Insertion sort: linear on a ring's returns in firing order (bearings nearly
+    monotonic; a mostly falling run is turned around first), quadratic in no order."""
+    falling = 0
+    for i in range(lo + 1, hi):
+        falling += 1 if _before(order[i], order[i - 1], azimuth) else 0
+        falling -= 1 if _before(order[i - 1], order[i], azimuth) else 0
+    if falling > 0:  # turned around in place
+        for i in range((hi - lo) // 2):
+            order[lo + i], order[hi - 1 - i] = order[hi - 1 - i], order[lo + i]
+    for i in range(lo + 1, hi):
+        this, j = order[i], i - 1
+        while j >= lo and _before(this, order[j], azimuth):
+            order[j + 1] = order[j]
+            j -= 1
+        order[j + 1] = this
+
+
+@kernel
+def _before(a: int, b: int, azimuth: np.ndarray) -> bool:
+    """Return a sorts before return b: a smaller bearing in NumPy's order (NaN last,
+    -0.0 equal to 0.0), or an equal one and a smaller index."""
+    x, y = azimuth[a], azimuth[b]
+    if x < y or (y != y and x == x):
+        return True
+    if y < x or (x != x and y == y):
+        return False
+    return a < b
 
 
 @kernel
@@ -211,8 +280,8 @@ def _off_middle(points: np.ndarray, order: np.ndarray, i: int) -> float:
 
 @kernel
 def _kernel_median(values: np.ndarray) -> float:
-    """`median` of a 1-D float array: the same middle values by one partition (numba's
-    sort is several times slower on the many equal gaps), NaN when any value is."""
+    """`median` of a 1-D float array: the same middle values by one partition (linear,
+    where a sort is not), NaN when any value is."""
     n = len(values)
     if n == 0:
         return math.nan
@@ -311,3 +380,5 @@ def compile_kernels() -> None:
     _adjacent(np.zeros(12, dtype=np.int64), index, np.zeros(11), 0, 0.5)
     _off_middle(xyz, index, 1)
     _kernel_median(np.zeros(3))
+    _sort_by_bearing(index, azimuth, 0, 12)
+    _before(0, 1, azimuth)

@@ -110,6 +110,47 @@ def test_each_distance_off_the_middle_is_numpys_norm(data):
         assert not same_bits(other, want)
 
 
+def lexsort(azimuth: np.ndarray, ring: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    return np.lexsort((azimuth, ring, np.repeat(np.arange(len(sizes)), sizes)))
+
+
+def test_the_order_by_group_ring_and_bearing_is_lexsorts_on_a_scan():
+    rough_calls, _ = detected_calls()
+    for xyz, ring, lidar_xy, sizes in rough_calls:
+        azimuth = classify._bearings(xyz, lidar_xy)
+        got = classify._lexsort_groups(ring.astype(np.int64), azimuth, sizes.astype(np.int64))
+        assert np.array_equal(got, lexsort(azimuth, ring, sizes))
+
+
+@pytest.mark.parametrize("bearings", ["rising", "falling", "shuffled"])
+def test_the_order_is_lexsorts_with_ties_nan_and_signed_zeros(bearings):
+    """Equal bearings keep their index order, NaN sorts last, -0.0 ties with 0.0, in
+    runs that rise (turned around first when they fall) or have no order."""
+    rng = np.random.default_rng(6)
+    for _ in range(300):
+        sizes = rng.integers(0, 60, rng.integers(1, 6))
+        n = int(sizes.sum())
+        azimuth = np.round(rng.uniform(-3, 3, n), rng.integers(0, 3))  # many ties
+        if bearings != "shuffled":
+            azimuth = np.sort(azimuth)[:: 1 if bearings == "rising" else -1].copy()
+        azimuth[rng.integers(0, max(n, 1), 3)[: n and 3]] = np.nan
+        azimuth[rng.integers(0, max(n, 1), 2)[: n and 2]] = -0.0
+        azimuth[rng.integers(0, max(n, 1), 2)[: n and 2]] = 0.0
+        ring = rng.integers(0, 16, n)
+        got = classify._lexsort_groups(ring, azimuth, sizes)
+        assert np.array_equal(got, lexsort(azimuth, ring, sizes))
+
+
+def test_rings_too_far_apart_are_left_to_numpys_lexsort():
+    xyz, ring, lidar_xy, sizes = detected_calls()[0][-1]
+    far = ring.astype(np.int64) * 1000  # 0 to 15000: no counting sort
+    azimuth = classify._bearings(xyz, lidar_xy)
+    assert classify._lexsort_groups(far, azimuth, sizes.astype(np.int64)) is None
+    found = roughness_of_groups(xyz, far, lidar_xy, sizes)
+    assert same_bits(found, roughness_of_groups_numpy(xyz, far, lidar_xy, sizes))
+    assert same_bits(found, roughness_of_groups(xyz, ring, lidar_xy, sizes))
+
+
 def test_a_median_of_an_even_count_and_a_nan_as_numpy_gives_them():
     rng = np.random.default_rng(0)
     for n in (1, 2, 5, 6, 101, 1000):
@@ -192,6 +233,9 @@ def test_one_angle_wrapped_as_numpy_wraps_it(angle):
 def test_a_scan_compiles_nothing_beyond_the_warm_ups():
     kernels = (
         classify._roughness_after_gaps,
+        classify._lexsort_groups,
+        classify._sort_by_bearing,
+        classify._before,
         classify._adjacent,
         classify._off_middle,
         classify._kernel_median,
