@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from treetraits.jit import kernel, warm_up
+from treetraits.pipeline.clustering import kernel_layout
 from treetraits.pipeline.config import ClassifyConfig
 
 TREE = "tree"
@@ -37,6 +39,9 @@ REASONS = (LOW, TALL, FLOATING, THIN, SLENDER, WIDE, SMOOTH, NOT_GREEN)
 _ANGLES = np.arange(12) * math.pi / 12
 _DIRECTIONS = np.stack([np.cos(_ANGLES), np.sin(_ANGLES)])
 _BEARINGS = np.ascontiguousarray(_DIRECTIONS.T)
+# Ring numbers one group may span for the roughness's counting sort by ring (a VLP-16's
+# span 16); wider, NumPy's lexsort orders the returns.
+_MAX_RINGS = 1024
 
 
 @dataclass(frozen=True)
@@ -74,8 +79,11 @@ def shape_of(
     mean_ndvi, share = math.nan, 0.0
     if ndvi is not None and len(ndvi):
         known = np.isfinite(ndvi)
-        share = float(known.mean())
-        if known.any():
+        # known.mean() sums the flags as float64 (exactly) and divides by the count:
+        # the same correctly rounded quotient, without np.mean's machinery.
+        seen = int(np.count_nonzero(known))
+        share = seen / len(ndvi)
+        if seen:
             mean_ndvi = float(ndvi[known].mean())
     if rough is None:
         rough = roughness(points, ring, lidar_xy)
@@ -107,13 +115,47 @@ def roughness_of_groups(
     """`roughness` of each group of consecutive returns (`sizes[k]` of them) at once: a
     scan's clusters in one pass, not ~25 NumPy calls each. The groups are kept apart by a
     leading sort key and by no pair or triple spanning two of them; NaN for a group of
-    fewer than 3 returns or 5 triples."""
+    fewer than 3 returns or 5 triples. The bearings and the gaps between them are
+    NumPy's (its arctangent and complex exponential are SIMD code a kernel would not
+    match to the bit); their order (`_lexsort_groups`) and what follows the gaps
+    (`_roughness_after_gaps`) are kernels, to the bit `roughness_of_groups_numpy`'s."""
+    if points.dtype != np.float64:  # the kernel's arithmetic is float64's
+        return roughness_of_groups_numpy(points, ring, lidar_xy, sizes)
+    rings, counts = kernel_layout(ring, np.int64), kernel_layout(sizes, np.int64)
+    azimuth = _bearings(points, lidar_xy)
+    order = _lexsort_groups(rings, azimuth, counts)
+    if order is None:  # rings too far apart to count out
+        order = _lexsort(azimuth, ring, sizes)
+    # The returns and rings read through `order` in the kernel, not gathered first.
+    return _roughness_after_gaps(kernel_layout(points), rings, order, _gaps(azimuth, order), counts)
+
+
+def _bearings(points: np.ndarray, lidar_xy: np.ndarray) -> np.ndarray:
+    """Each return's bearing (rad) from the LiDAR."""
+    return np.arctan2(points[:, 1] - lidar_xy[1], points[:, 0] - lidar_xy[0])
+
+
+def _lexsort(azimuth: np.ndarray, ring: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """The returns by group, ring and bearing (stable: each group's own lexsort)."""
+    return np.lexsort((azimuth, ring, np.repeat(np.arange(len(sizes)), sizes)))
+
+
+def _gaps(azimuth: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """The bearing gap (rad, wrapped) after each return in `order`."""
+    return np.abs(np.angle(np.exp(1j * np.diff(azimuth[order]))))
+
+
+def roughness_of_groups_numpy(
+    points: np.ndarray, ring: np.ndarray, lidar_xy: np.ndarray, sizes: np.ndarray
+) -> np.ndarray:
+    """`roughness_of_groups` in NumPy calls: for points other than float64, and the
+    formulation the kernel is held to (tests)."""
     groups = len(sizes)
+    azimuth = _bearings(points, lidar_xy)
+    order = _lexsort(azimuth, ring, sizes)
+    gap = _gaps(azimuth, order)
     owner = np.repeat(np.arange(groups), sizes)
-    azimuth = np.arctan2(points[:, 1] - lidar_xy[1], points[:, 0] - lidar_xy[0])
-    order = np.lexsort((azimuth, ring, owner))  # stable: each group's own lexsort
-    p, r, a, owner = points[order], ring[order], azimuth[order], owner[order]
-    gap = np.abs(np.angle(np.exp(1j * np.diff(a))))
+    p, r, owner = points[order], ring[order], owner[order]
     same = (r[1:] == r[:-1]) & (owner[1:] == owner[:-1])
     step = _median_of_groups(gap[same], owner[1:][same], groups)
     adjacent = same & (gap <= 2.5 * step[owner[1:]])  # NaN steps: no pair, never same
@@ -123,6 +165,132 @@ def roughness_of_groups(
     found = _median_of_groups(spread, owner[1:-1][triple], groups)
     enough = (np.bincount(owner[1:-1][triple], minlength=groups) >= 5) & (sizes >= 3)
     return np.where(enough, found, math.nan)
+
+
+@kernel
+def _lexsort_groups(ring: np.ndarray, azimuth: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """`np.lexsort((azimuth, ring, owner))` of groups of consecutive returns (`sizes`):
+    each group's returns counted out by ring, then each ring's sorted by bearing. None
+    when a group's rings span more than `_MAX_RINGS` values (then NumPy sorts)."""
+    order = np.empty(len(ring), dtype=np.int64)
+    end = 0
+    for group in range(len(sizes)):
+        start, end = end, end + sizes[group]
+        if end == start:
+            continue
+        low, high = ring[start], ring[start]
+        for i in range(start, end):
+            low, high = min(low, ring[i]), max(high, ring[i])
+        if high - low >= _MAX_RINGS:
+            return None
+        first = np.zeros(high - low + 2, dtype=np.int64)  # each ring's start in the group
+        for i in range(start, end):
+            first[ring[i] - low + 1] += 1
+        for r in range(1, len(first)):
+            first[r] += first[r - 1]
+        at = first + start
+        for i in range(start, end):  # in index order: each ring's returns stay in it
+            order[at[ring[i] - low]] = i
+            at[ring[i] - low] += 1
+        for r in range(high - low + 1):
+            _sort_by_bearing(order, azimuth, start + first[r], start + first[r + 1])
+    return order
+
+
+@kernel
+def _sort_by_bearing(order: np.ndarray, azimuth: np.ndarray, lo: int, hi: int) -> None:
+    """Sort order[lo:hi] by bearing, equal bearings by index: the one order a stable sort
+    gives. Insertion sort: linear on a ring's returns in firing order (bearings nearly
+    monotonic; a mostly falling run is turned around first), quadratic in no order."""
+    falling = 0
+    for i in range(lo + 1, hi):
+        falling += 1 if _before(order[i], order[i - 1], azimuth) else 0
+        falling -= 1 if _before(order[i - 1], order[i], azimuth) else 0
+    if falling > 0:  # turned around in place
+        for i in range((hi - lo) // 2):
+            order[lo + i], order[hi - 1 - i] = order[hi - 1 - i], order[lo + i]
+    for i in range(lo + 1, hi):
+        this, j = order[i], i - 1
+        while j >= lo and _before(this, order[j], azimuth):
+            order[j + 1] = order[j]
+            j -= 1
+        order[j + 1] = this
+
+
+@kernel
+def _before(a: int, b: int, azimuth: np.ndarray) -> bool:
+    """Return a sorts before return b: a smaller bearing in NumPy's order (NaN last,
+    -0.0 equal to 0.0), or an equal one and a smaller index."""
+    x, y = azimuth[a], azimuth[b]
+    if x < y or (y != y and x == x):
+        return True
+    if y < x or (x != x and y == y):
+        return False
+    return a < b
+
+
+@kernel
+def _roughness_after_gaps(
+    points: np.ndarray, ring: np.ndarray, order: np.ndarray, gap: np.ndarray, sizes: np.ndarray
+) -> np.ndarray:
+    """`roughness_of_groups_numpy` from the returns, their rings, their `order` (by group,
+    ring and bearing: the groups stay where they were) and the `gap` after each one in
+    it: the same pairs, triples, distances and medians, one group after the other."""
+    found = np.full(len(sizes), np.nan)
+    values = np.empty(max(len(order), 1))
+    end = 0
+    for group in range(len(sizes)):
+        start, end = end, end + sizes[group]
+        # The median step between returns of one ring (pair i: returns i and i + 1).
+        count = 0
+        for i in range(start, end - 1):
+            if ring[order[i + 1]] == ring[order[i]]:
+                values[count] = gap[i]
+                count += 1
+        limit = 2.5 * _kernel_median(values[:count])
+        # The spread of each triple of adjacent returns (i - 1, i, i + 1).
+        count = 0
+        for i in range(start + 1, end - 1):
+            if _adjacent(ring, order, gap, i - 1, limit) and _adjacent(ring, order, gap, i, limit):
+                values[count] = _off_middle(points, order, i)
+                count += 1
+        if count >= 5 and sizes[group] >= 3:
+            found[group] = _kernel_median(values[:count])
+    return found
+
+
+@kernel
+def _adjacent(ring: np.ndarray, order: np.ndarray, gap: np.ndarray, i: int, limit: float) -> bool:
+    """Returns i and i + 1 in `order` consecutive firings: one ring, a gap within the
+    limit (never with a NaN limit)."""
+    return ring[order[i + 1]] == ring[order[i]] and gap[i] <= limit
+
+
+@kernel
+def _off_middle(points: np.ndarray, order: np.ndarray, i: int) -> float:
+    """Distance of return i in `order` from the midpoint of returns i - 1 and i + 1,
+    summed as `np.linalg.norm(..., axis=1)` sums the squares of a row."""
+    this, before, after = order[i], order[i - 1], order[i + 1]
+    total = 0.0
+    for axis in range(3):
+        d = points[this, axis] - (points[before, axis] + points[after, axis]) / 2
+        total = total + d * d if axis else d * d
+    return math.sqrt(total)
+
+
+@kernel
+def _kernel_median(values: np.ndarray) -> float:
+    """`median` of a 1-D float array: the same middle values by one partition (linear,
+    where a sort is not), NaN when any value is."""
+    n = len(values)
+    if n == 0:
+        return math.nan
+    for value in values:
+        if math.isnan(value):
+            return math.nan
+    half = n // 2
+    part = np.partition(values, half)
+    return part[half] if n % 2 else (part[:half].max() + part[half]) / 2
 
 
 def _median_of_groups(values: np.ndarray, owner: np.ndarray, groups: int) -> np.ndarray:
@@ -198,3 +366,19 @@ class Votes:
             return TREE
         reasons = [(n, r) for r, n in self.counts.items() if r != TREE]
         return max(reasons, key=lambda item: (item[0], -REASONS.index(item[1])))[1]
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The roughness kernel compiled for the types a scan gives it: two groups of float64
+    returns on uint8 rings (the ring arrays of `points`)."""
+    azimuth = np.linspace(-0.2, 0.2, 12)
+    xyz = np.column_stack([5 * np.cos(azimuth), 5 * np.sin(azimuth), np.ones(12)])
+    roughness_of_groups(xyz, np.zeros(12, dtype=np.uint8), np.zeros(2), np.array([7, 5]))
+    # The helpers too, as clustering's: a caller loaded from the cache compiles none.
+    index = np.arange(12)
+    _adjacent(np.zeros(12, dtype=np.int64), index, np.zeros(11), 0, 0.5)
+    _off_middle(xyz, index, 1)
+    _kernel_median(np.zeros(3))
+    _sort_by_bearing(index, azimuth, 0, 12)
+    _before(0, 1, azimuth)

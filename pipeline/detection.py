@@ -703,13 +703,7 @@ def _features(
     clusters = []
     for k, members in enumerate(members_of):
         cells, centroid = cells_of[k], centroids[k]
-        mean_ndvi = float("nan")
-        values = None
-        if ndvi is not None:
-            values = ndvi[members]
-            finite = values[np.isfinite(values)]
-            if len(finite):
-                mean_ndvi = float(finite.mean())
+        values = None if ndvi is None else ndvi[members]
         ground_z = float(ground_zs[k])
         points = all_points[ends[k] - sizes[k] : ends[k]]
         rings = all_rings[ends[k] - sizes[k] : ends[k]]
@@ -718,7 +712,7 @@ def _features(
             Cluster(
                 centroid=centroid,
                 num_points=len(cells),
-                ndvi=mean_ndvi,
+                ndvi=shape.ndvi,  # the mean of the finite values, NaN for none
                 voxels=cells,
                 points=points,
                 ring=rings,

@@ -22,7 +22,12 @@ taken from the returns' own x, y in the `lidar` frame, which every source has.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from treetraits.jit import kernel, warm_up
+from treetraits.pipeline.clustering import kernel_layout
 
 # The sensor's top beam, not the highest that hit something in a scan (over a young
 # grove the top beams may see only sky): every model read has 16 beams
@@ -38,22 +43,35 @@ class BeamsAbove:
         x = points["x"].astype(float)
         y = points["y"].astype(float)
         z = points["z"].astype(float)
-        bearing = np.arctan2(y, x)
-        # Sorted as the uint8 rings they are: NumPy's stable sort of bytes is a radix
-        # sort, several times faster than of int64, and the order is the same.
-        order = np.argsort(points["ring"], kind="stable")
+        bearing = np.arctan2(y, x)  # NumPy's (SIMD) arctangent, not a kernel's
         self.top_ring = max(TOP_RING, int(ring.max()) if len(ring) else 0)
-        span = np.sqrt(x * x + y * y + z * z)
-        self._bearing = bearing[order]
-        self._range = span[order]
-        self._starts = np.searchsorted(ring[order], np.arange(self.top_ring + 2))
+        # The ranges, the ring order (a stable counting sort: np.argsort(kind="stable")'s
+        # order) and each ring's first return in it, in one kernel.
+        span, self._bearing, self._range, self._starts = _by_ring(
+            x, y, z, ring, bearing, self.top_ring
+        )
         # Per return in the scan's order, for the clusters' own returns: what top_seen
         # worked out again for each cluster, the same values gathered.
-        self._by_point = (x, y, z, bearing, span, points["ring"])
+        self._by_point = (x, y, z, bearing, span, ring)
 
     def top_seen(self, members: np.ndarray, window_rad: float, reach_m: float) -> bool:
         """Whether the beam above the cluster `members` (indices into the scan this was
-        built on) passed over all of it: see the module's docstring."""
+        built on) passed over all of it: see the module's docstring. Two kernels, to the
+        bit `top_seen_numpy`; the arctangent of the top stays NumPy's."""
+        x, y, z, bearing, span, rings = self._by_point
+        members = kernel_layout(members, np.int64)
+        top, ring = _top_and_ring(z, rings, members)
+        if ring >= self.top_ring:
+            return False
+        centre = float(np.arctan2(y[top], x[top]))  # as before: the scalar arctangent
+        start, end = self._starts[ring + 1], self._starts[ring + 2]
+        return _passed_over(
+            bearing, span, members, centre, window_rad, reach_m, self._bearing, self._range,
+            start, end,
+        )  # fmt: skip
+
+    def top_seen_numpy(self, members: np.ndarray, window_rad: float, reach_m: float) -> bool:
+        """`top_seen` in NumPy calls: the formulation its kernels are held to (tests)."""
         x, y, z, bearing, span, rings = self._by_point
         # Gathered as needed: heights and rings first (the top ring has no beam above),
         # x and y at the top alone.
@@ -72,6 +90,91 @@ class BeamsAbove:
         return not bool(np.any(self._range[start:end][inside] <= farthest + reach_m))
 
 
+@kernel
+def _by_ring(
+    x: np.ndarray, y: np.ndarray, z: np.ndarray, ring: np.ndarray, bearing: np.ndarray, top: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each return's range (`np.sqrt(x * x + y * y + z * z)`, summed in that order), and
+    the bearings and ranges sorted by ring (stable), with the start of each ring 0 to
+    `top` + 1 in them (`np.searchsorted` of the sorted rings, side left)."""
+    n = len(x)
+    span = np.empty(n)
+    starts = np.zeros(top + 2, dtype=np.int64)
+    for i in range(n):
+        span[i] = math.sqrt(x[i] * x[i] + y[i] * y[i] + z[i] * z[i])
+        starts[ring[i] + 1] += 1
+    for r in range(1, top + 2):
+        starts[r] += starts[r - 1]
+    at = starts.copy()
+    sorted_bearing, sorted_range = np.empty(n), np.empty(n)
+    for i in range(n):
+        k = at[ring[i]]
+        sorted_bearing[k], sorted_range[k] = bearing[i], span[i]
+        at[ring[i]] = k + 1
+    return span, sorted_bearing, sorted_range, starts
+
+
+@kernel
+def _top_and_ring(z: np.ndarray, rings: np.ndarray, members: np.ndarray) -> tuple[int, int]:
+    """The member highest up (the first of equals, or the first NaN, as np.argmax) and
+    the highest ring among the members."""
+    top, ring = members[0], rings[members[0]]
+    for i in members[1:]:
+        if z[i] > z[top] or (math.isnan(z[i]) and not math.isnan(z[top])):
+            top = i
+        ring = max(ring, rings[i])
+    return top, ring
+
+
+@kernel
+def _passed_over(
+    bearing: np.ndarray,
+    span: np.ndarray,
+    members: np.ndarray,
+    centre: float,
+    window_rad: float,
+    reach_m: float,
+    beam_bearing: np.ndarray,
+    beam_range: np.ndarray,
+    start: int,
+    end: int,
+) -> bool:
+    """No return of the beam above (`start`:`end` of the ring-sorted returns) within the
+    members' bearings (from `centre`, widened by the window) nearer than their farthest
+    return plus `reach_m`. NaN bearings or ranges make the bounds NaN, as NumPy's min and
+    max do (then no return is inside)."""
+    low, high, farthest = math.inf, -math.inf, -math.inf
+    for i in members:
+        offset = _wrap_one(bearing[i] - centre)
+        low = offset if offset < low or math.isnan(offset) or math.isnan(low) else low
+        high = offset if offset > high or math.isnan(offset) or math.isnan(high) else high
+        far = span[i]
+        farthest = far if far > farthest or math.isnan(far) or math.isnan(farthest) else farthest
+    low, high = low - window_rad, high + window_rad
+    for j in range(start, end):
+        above = _wrap_one(beam_bearing[j] - centre)
+        if above >= low and above <= high and beam_range[j] <= farthest + reach_m:
+            return False
+    return True
+
+
+@kernel
+def _wrap_one(angle: float) -> float:
+    """`_wrap` of one angle: numba's float % is Python's, as NumPy's remainder (fmod,
+    then the divisor's sign)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
 def _wrap(angles: np.ndarray) -> np.ndarray:
     """Angles into [-pi, pi)."""
     return (angles + np.pi) % (2 * np.pi) - np.pi
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The kernels compiled for the types a scan gives them: float32 returns, uint8 rings
+    (`POINT_DTYPE`), int64 member indices."""
+    points = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("ring", "u1")])
+    points["x"], points["z"], points["ring"] = 5.0, (0.0, 0.5, 1.0), (0, 1, 2)
+    BeamsAbove(points).top_seen(np.arange(2), 0.01, 0.5)
+    _wrap_one(0.5)  # a helper too: a caller loaded from the cache compiles none

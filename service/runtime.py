@@ -75,6 +75,7 @@ PIPELINE_MODULES = (
     "treetraits.pipeline.fusion",
     # Every module with compiled kernels (treetraits.jit), for their warm-ups.
     "treetraits.drivers.velodyne.packet",
+    "treetraits.pipeline.classify",
     "treetraits.pipeline.clustering",
     "treetraits.pipeline.deskew",
     "treetraits.pipeline.detection",
