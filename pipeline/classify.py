@@ -201,7 +201,9 @@ def _lexsort_groups(ring: np.ndarray, azimuth: np.ndarray, sizes: np.ndarray) ->
 def _sort_by_bearing(order: np.ndarray, azimuth: np.ndarray, lo: int, hi: int) -> None:
     """Sort order[lo:hi] by bearing, equal bearings by index: the one order a stable sort
     gives. Insertion sort: linear on a ring's returns in firing order (bearings nearly
-    monotonic; a mostly falling run is turned around first), quadratic in no order."""
+    monotonic; a mostly falling run is turned around first); returns in no order (a
+    recording from another driver) go to a merge sort once the moves pass a few per
+    return, before the insertion sort turns quadratic."""
     falling = 0
     for i in range(lo + 1, hi):
         falling += 1 if _before(order[i], order[i - 1], azimuth) else 0
@@ -209,12 +211,18 @@ def _sort_by_bearing(order: np.ndarray, azimuth: np.ndarray, lo: int, hi: int) -
     if falling > 0:  # turned around in place
         for i in range((hi - lo) // 2):
             order[lo + i], order[hi - 1 - i] = order[hi - 1 - i], order[lo + i]
+    moves_left = 8 * (hi - lo) + 64
     for i in range(lo + 1, hi):
         this, j = order[i], i - 1
         while j >= lo and _before(this, order[j], azimuth):
             order[j + 1] = order[j]
             j -= 1
+            moves_left -= 1
         order[j + 1] = this
+        if moves_left < 0:
+            segment = np.sort(order[lo:hi])  # index order: a stable sort keeps ties so
+            order[lo:hi] = segment[np.argsort(azimuth[segment], kind="mergesort")]
+            return
 
 
 @kernel

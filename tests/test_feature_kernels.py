@@ -141,6 +141,19 @@ def test_the_order_is_lexsorts_with_ties_nan_and_signed_zeros(bearings):
         assert np.array_equal(got, lexsort(azimuth, ring, sizes))
 
 
+def test_returns_in_no_order_are_merge_sorted_as_lexsort_sorts_them():
+    """A ring of 20,000 returns shuffled (a recording from another driver): the
+    insertion sort gives up after a few moves a return and a merge sort takes over."""
+    rng = np.random.default_rng(7)
+    azimuth = np.round(rng.uniform(-3, 3, 20_000), 2)  # ties
+    azimuth[rng.integers(0, 20_000, 5)] = np.nan
+    azimuth[rng.integers(0, 20_000, 5)] = -0.0
+    ring = np.zeros(20_000, dtype=np.int64)
+    sizes = np.array([20_000], dtype=np.int64)
+    got = classify._lexsort_groups(ring, azimuth, sizes)
+    assert np.array_equal(got, lexsort(azimuth, ring, sizes))
+
+
 def test_rings_too_far_apart_are_left_to_numpys_lexsort():
     xyz, ring, lidar_xy, sizes = detected_calls()[0][-1]
     far = ring.astype(np.int64) * 1000  # 0 to 15000: no counting sort
