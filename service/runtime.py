@@ -80,6 +80,7 @@ PIPELINE_MODULES = (
     "treetraits.pipeline.detection",
     "treetraits.pipeline.stems",
     "treetraits.pipeline.terrain",
+    "treetraits.pipeline.traits",
 )
 
 
