@@ -78,6 +78,7 @@ PIPELINE_MODULES = (
     "treetraits.pipeline.clustering",
     "treetraits.pipeline.deskew",
     "treetraits.pipeline.detection",
+    "treetraits.pipeline.mapper",
     "treetraits.pipeline.projection",
     "treetraits.pipeline.stems",
     "treetraits.pipeline.terrain",
