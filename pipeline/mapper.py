@@ -615,31 +615,40 @@ def _crowded_places(xy: np.ndarray, cell: float, places: int = 8) -> np.ndarray:
     """The mean sighting of each of the `places` grid cells (of size `cell`) holding the
     most sightings: where the best supported place can be, found in O(n log n) (a tree
     seen for minutes has hundreds of sightings, and the mapper asks every scan)."""
-    cells = np.floor(xy / cell).astype(np.int64)
-    keys = (cells[:, 0] << 32) + cells[:, 1]  # one int64 per cell (|cell| < 2^31)
-    inverse = _group_of(keys)
-    counts = np.bincount(inverse)
-    top = np.argsort(-counts, kind="stable")[:places]
-    # Both coordinates in one bincount (bin 2 g + k: coordinate k of group g), each bin
-    # summed in the sightings' order as one bincount per coordinate sums it.
-    sums = np.bincount((2 * inverse[:, None] + _XY).ravel(), weights=xy.ravel())
-    return sums.reshape(-1, 2)[top] / counts[top, None]
+    return _cell_means(kernel_layout(xy), float(cell), places)
 
 
-_XY = np.arange(2)
-
-
-def _group_of(keys: np.ndarray) -> np.ndarray:
-    """Each key's index among the sorted distinct keys (np.unique's `inverse`), without
-    np.unique's checks and wrapping (a few hundred keys: those cost more than the sort)."""
-    order = np.argsort(keys)
-    ordered = keys[order]
-    new = np.empty(len(keys), dtype=bool)
-    new[:1] = True
-    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
-    inverse = np.empty(len(keys), dtype=np.intp)
-    inverse[order] = np.cumsum(new) - 1
-    return inverse
+@kernel
+def _cell_means(xy: np.ndarray, cell: float, places: int) -> np.ndarray:
+    """`_crowded_places` compiled, NumPy's steps: the cells (floor, int64, one key per
+    cell, |cell| < 2^31) grouped in key order, the `places` fullest by a stable sort
+    (ties: the lower key), each one's sightings summed in their order from 0.0 (as
+    np.bincount's weights) and divided by their count."""
+    n = xy.shape[0]
+    keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        column, row = np.floor(xy[i, 0] / cell), np.floor(xy[i, 1] / cell)
+        keys[i] = (np.int64(column) << 32) + np.int64(row)
+    order = np.argsort(keys)  # the groups only: the same in any sort
+    group = np.empty(n, dtype=np.int64)
+    groups = 0
+    for k in range(n):
+        if k > 0 and keys[order[k]] != keys[order[k - 1]]:
+            groups += 1
+        group[order[k]] = groups
+    groups = groups + 1 if n else 0
+    counts = np.zeros(groups, dtype=np.int64)
+    sums = np.zeros((groups, 2))
+    for i in range(n):
+        counts[group[i]] += 1
+        sums[group[i], 0] += xy[i, 0]
+        sums[group[i], 1] += xy[i, 1]
+    top = np.argsort(-counts, kind="mergesort")[:places]
+    out = np.empty((top.shape[0], 2))
+    for r in range(top.shape[0]):
+        out[r, 0] = sums[top[r], 0] / np.float64(counts[top[r]])
+        out[r, 1] = sums[top[r], 1] / np.float64(counts[top[r]])
+    return out
 
 
 def _position_sigma(pose: Pose | None) -> float | None:
@@ -741,10 +750,12 @@ def _nearer(xy: np.ndarray, own_d2: np.ndarray, others: np.ndarray) -> np.ndarra
 
 @warm_up
 def compile_kernels() -> None:
-    """The Voronoi cut's kernels compiled for a cluster's x-y points (float64, C order)."""
+    """The Voronoi cut's and the trunk's kernels compiled for x-y points (float64, C
+    order): a cluster's, a tree's trunk sightings."""
     xy = np.array([[0.0, 1.0], [2.0, 0.5]])
     own_d2, _ = _own_distances(xy, 0.0, 0.0)
     _nearer(xy, own_d2, np.array([[1.0, 1.0]]))
+    _cell_means(xy, 0.3, 8)
 
 
 class _NdviOf:

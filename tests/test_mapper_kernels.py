@@ -1,7 +1,8 @@
 """The Voronoi cut's compiled steps (`mapper._own_distances`, `mapper._nearer`) give what
 the NumPy formulation they replaced gave, on the clusters and trunks the mapper cuts on
 the twin drive past the 2 x 3 grid, with the neighbours it had and with more, nearer
-ones; and compile nothing beyond the warm-up."""
+ones; so do the trunk's crowded places (`mapper._cell_means`) on the sightings the
+mapper gathers there; and they compile nothing beyond the warm-up."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 from tests.test_mapper import grid_drive
 from treetraits.pipeline import mapper as mapper_module
 from treetraits.pipeline.config import MapperConfig
-from treetraits.pipeline.mapper import TreeMapper, _Centres
+from treetraits.pipeline.mapper import TreeMapper, _Centres, _crowded_places
 
 
 def numpy_nearest_is(centres: _Centres, xy: np.ndarray, tree_id: int) -> np.ndarray:
@@ -94,12 +95,14 @@ def test_crowded_cuts_are_numpy_s():
 
 
 def test_cuts_compile_nothing_beyond_the_warm_up():
-    kernels = (mapper_module._own_distances, mapper_module._nearer)
+    kernels = (mapper_module._own_distances, mapper_module._nearer, mapper_module._cell_means)
     mapper_module.compile_kernels()
     warmed = [list(k.signatures) for k in kernels]
     assert all(len(signatures) == 1 for signatures in warmed)
     for centres, xy, tree_id in cuts()[:50]:
         crowded(centres, tree_id, 0).nearest_is(np.asarray(xy)[::-1], tree_id)
+    for xy, cell in sightings()[:50]:
+        _crowded_places(xy[::-1], cell)
     assert [list(k.signatures) for k in kernels] == warmed
 
 
@@ -112,3 +115,60 @@ def test_a_point_halfway_stays_with_the_tree_as_numpy_kept_it():
     want = numpy_nearest_is(centres, points, 1)
     assert want.tolist() == [True, True, False, True]  # ties: its own
     assert centres.nearest_is(points, 1).tobytes() == want.tobytes()
+
+
+def numpy_crowded_places(xy: np.ndarray, cell: float, places: int = 8) -> np.ndarray:
+    """`mapper._crowded_places` as NumPy computed it before its kernel."""
+    cells = np.floor(xy / cell).astype(np.int64)
+    keys = (cells[:, 0] << 32) + cells[:, 1]
+    order = np.argsort(keys)
+    ordered = keys[order]
+    new = np.empty(len(keys), dtype=bool)
+    new[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
+    inverse = np.empty(len(keys), dtype=np.intp)
+    inverse[order] = np.cumsum(new) - 1
+    counts = np.bincount(inverse)
+    top = np.argsort(-counts, kind="stable")[:places]
+    sums = np.bincount((2 * inverse[:, None] + np.arange(2)).ravel(), weights=xy.ravel())
+    return sums.reshape(-1, 2)[top] / counts[top, None]
+
+
+@functools.cache
+def sightings() -> tuple[tuple[np.ndarray, float], ...]:
+    """Every (trunk sightings, cell) the mapper placed a trunk from on the twin drive."""
+    seen = []
+    crowded_places = mapper_module._crowded_places
+
+    def recording(xy, cell, *args):
+        seen.append((np.array(xy), cell))
+        return crowded_places(xy, cell, *args)
+
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    mapper_module._crowded_places = recording
+    try:
+        for scan, pose in zip(data.scans, data.poses, strict=True):
+            mapper.process(scan, None, pose)
+            mapper.trees()
+    finally:
+        mapper_module._crowded_places = crowded_places
+    return tuple(seen)
+
+
+def test_trunk_places_are_numpy_s():
+    calls = sightings()
+    assert len(calls) > 50 and max(len(xy) for xy, _ in calls) > 20
+    for xy, cell in calls:
+        assert _crowded_places(xy, cell).tobytes() == numpy_crowded_places(xy, cell).tobytes()
+    # Sightings spread over more cells than places, with ties, far from the origin and
+    # either side of it (negative cells), one cell size after another.
+    rng = np.random.default_rng(2)
+    for k in range(300):
+        n = int(rng.integers(1, 300))
+        xy = rng.normal(0, rng.uniform(0.05, 2.0), (n, 2)) + rng.uniform(-600, 600, 2)
+        if k % 3 == 0:
+            xy = np.vstack([xy, xy[: n // 2]])
+        cell = float(rng.choice([0.3, 0.25, 0.5]))
+        got, want = _crowded_places(xy, cell), numpy_crowded_places(xy, cell)
+        assert got.tobytes() == want.tobytes()
