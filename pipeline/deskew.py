@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from treetraits.drivers.records import Scan, take_points
+from treetraits.drivers.records import POINT_DTYPE, Scan, take_points
 from treetraits.jit import kernel, warm_up
 
 
@@ -136,20 +136,41 @@ def deskew_scan(
 ) -> Scan:
     """The scan with every point de-skewed to `t_ref` (host clock); other fields kept."""
     points = take_points(scan.points, slice(None))
-    # Straight into float64, as `deskew` works (one conversion, not a float32 stack first).
-    xyz = np.empty((len(points), 3))
-    xyz[:, 0], xyz[:, 1], xyz[:, 2] = points["x"], points["y"], points["z"]
-    moved = deskew(
-        xyz, scan_point_host_times(scan), sample_times, sample_poses, t_ref, T_base_lidar
+    # The fields read (into float64, as `deskew` works) and written back in one compiled
+    # pass each, where NumPy took one per field; the times as `scan_point_host_times`.
+    xyz, times = _read_points(
+        points["x"], points["y"], points["z"], points["t"], np.int64(scan.t_host - scan.t_end)
     )
-    points["x"], points["y"], points["z"] = moved[:, 0], moved[:, 1], moved[:, 2]
+    moved = deskew(xyz, times, sample_times, sample_poses, t_ref, T_base_lidar)
+    _write_points(moved, points["x"], points["y"], points["z"])
     return replace(scan, points=points)
+
+
+@kernel
+def _read_points(x, y, z, t, offset):
+    """(N x 3 float64 of the fields x, y, z; t + offset as int64), NumPy's conversions."""
+    xyz = np.empty((x.shape[0], 3))
+    times = np.empty(x.shape[0], dtype=np.int64)
+    for i in range(x.shape[0]):
+        xyz[i, 0], xyz[i, 1], xyz[i, 2] = x[i], y[i], z[i]
+        times[i] = np.int64(t[i]) + offset
+    return xyz, times
+
+
+@kernel
+def _write_points(moved, x, y, z):
+    """The columns of `moved` into the float32 fields (rounded to nearest, as NumPy)."""
+    for i in range(moved.shape[0]):
+        x[i], y[i], z[i] = moved[i, 0], moved[i, 1], moved[i, 2]
 
 
 @warm_up
 def compile_kernels() -> None:
-    """The blend's kernel compiled for the types a scan gives it: two points fired
-    between two poses a metre apart, out of firing order."""
+    """The kernels compiled for the types a scan gives them: two points fired between
+    two poses a metre apart, out of firing order; a scan's fields read and written."""
     poses = np.stack([np.eye(4), np.eye(4)])
     poses[1, 0, 3] = 1.0
     deskew(np.ones((2, 3)), np.array([7, 3]), np.array([0, 10]), poses, 5, np.eye(4))
+    points = np.zeros(2, dtype=POINT_DTYPE)  # a scan's fields: strided views
+    xyz, _ = _read_points(points["x"], points["y"], points["z"], points["t"], np.int64(5))
+    _write_points(xyz, points["x"], points["y"], points["z"])

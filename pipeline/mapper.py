@@ -15,7 +15,9 @@ import numpy as np
 
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Pose, Scan, take_points
+from treetraits.jit import kernel, warm_up
 from treetraits.pipeline.classify import FLOATING, LOW, TREE, Votes
+from treetraits.pipeline.clustering import kernel_layout
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
@@ -613,31 +615,40 @@ def _crowded_places(xy: np.ndarray, cell: float, places: int = 8) -> np.ndarray:
     """The mean sighting of each of the `places` grid cells (of size `cell`) holding the
     most sightings: where the best supported place can be, found in O(n log n) (a tree
     seen for minutes has hundreds of sightings, and the mapper asks every scan)."""
-    cells = np.floor(xy / cell).astype(np.int64)
-    keys = (cells[:, 0] << 32) + cells[:, 1]  # one int64 per cell (|cell| < 2^31)
-    inverse = _group_of(keys)
-    counts = np.bincount(inverse)
-    top = np.argsort(-counts, kind="stable")[:places]
-    # Both coordinates in one bincount (bin 2 g + k: coordinate k of group g), each bin
-    # summed in the sightings' order as one bincount per coordinate sums it.
-    sums = np.bincount((2 * inverse[:, None] + _XY).ravel(), weights=xy.ravel())
-    return sums.reshape(-1, 2)[top] / counts[top, None]
+    return _cell_means(kernel_layout(xy), float(cell), places)
 
 
-_XY = np.arange(2)
-
-
-def _group_of(keys: np.ndarray) -> np.ndarray:
-    """Each key's index among the sorted distinct keys (np.unique's `inverse`), without
-    np.unique's checks and wrapping (a few hundred keys: those cost more than the sort)."""
-    order = np.argsort(keys)
-    ordered = keys[order]
-    new = np.empty(len(keys), dtype=bool)
-    new[:1] = True
-    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
-    inverse = np.empty(len(keys), dtype=np.intp)
-    inverse[order] = np.cumsum(new) - 1
-    return inverse
+@kernel
+def _cell_means(xy: np.ndarray, cell: float, places: int) -> np.ndarray:
+    """`_crowded_places` compiled, NumPy's steps: the cells (floor, int64, one key per
+    cell, |cell| < 2^31) grouped in key order, the `places` fullest by a stable sort
+    (ties: the lower key), each one's sightings summed in their order from 0.0 (as
+    np.bincount's weights) and divided by their count."""
+    n = xy.shape[0]
+    keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        column, row = np.floor(xy[i, 0] / cell), np.floor(xy[i, 1] / cell)
+        keys[i] = (np.int64(column) << 32) + np.int64(row)
+    order = np.argsort(keys)  # the groups only: the same in any sort
+    group = np.empty(n, dtype=np.int64)
+    groups = 0
+    for k in range(n):
+        if k > 0 and keys[order[k]] != keys[order[k - 1]]:
+            groups += 1
+        group[order[k]] = groups
+    groups = groups + 1 if n else 0
+    counts = np.zeros(groups, dtype=np.int64)
+    sums = np.zeros((groups, 2))
+    for i in range(n):
+        counts[group[i]] += 1
+        sums[group[i], 0] += xy[i, 0]
+        sums[group[i], 1] += xy[i, 1]
+    top = np.argsort(-counts, kind="mergesort")[:places]
+    out = np.empty((top.shape[0], 2))
+    for r in range(top.shape[0]):
+        out[r, 0] = sums[top[r], 0] / np.float64(counts[top[r]])
+        out[r, 1] = sums[top[r], 1] / np.float64(counts[top[r]])
+    return out
 
 
 def _position_sigma(pose: Pose | None) -> float | None:
@@ -671,6 +682,9 @@ class _Centres:
 
     def __init__(self, tracks, traits_from_map: np.ndarray, claiming: set[int]):
         self.ids = np.array([tr.tree_id for tr in tracks], dtype=np.int64)
+        self.rows: dict[int, int] = {}  # each id's first row
+        for row, tree_id in enumerate(self.ids.tolist()):
+            self.rows.setdefault(tree_id, row)
         # Which tracks take their side of the cut: trees, posts, people, walls. The
         # understorey's (a weed, a drip line's span under a crown) and a crown fragment's
         # are no claim on the foliage above or around them.
@@ -685,21 +699,63 @@ class _Centres:
         """Points nearer (x-y) to this tree's centre than to any other claiming object's:
         a cluster that took in a piece of a neighbour's crown, a post or a person gives it
         back (a Voronoi cut), so it widens neither this tree's traits nor its outline."""
-        own = self.xy[np.flatnonzero(self.ids == tree_id)[0]]
-        # Squared distances as dx * dx + dy * dy, column by column: the values of
-        # ((p - q) ** 2).sum() over x and y, without a reduction along a 2-long axis.
-        x, y = xy[:, 0], xy[:, 1]
-        dx, dy = x - own[0], y - own[1]
-        own_d2 = dx * dx + dy * dy
-        reach = float(np.sqrt(own_d2.max())) if len(xy) else 0.0
+        own = self.xy[self.rows[tree_id]]
+        # The points' squared distances to this centre and its reach in one compiled pass;
+        # the centres (a few) by NumPy.
+        points = kernel_layout(xy)
+        own_d2, reach = _own_distances(points, own[0], own[1])
         gap = self.xy - own
         near = self.claims & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
         if not near.any():
             return np.ones(len(xy), dtype=bool)
-        others = self.xy[near]
-        dx, dy = x[:, None] - others[:, 0], y[:, None] - others[:, 1]
-        other_d2 = (dx * dx + dy * dy).min(axis=1)
-        return own_d2 <= other_d2
+        return _nearer(points, own_d2, kernel_layout(self.xy[near]))
+
+
+@kernel
+def _own_distances(xy: np.ndarray, x0: float, y0: float) -> tuple[np.ndarray, float]:
+    """Squared x-y distances to (x0, y0) as dx * dx + dy * dy, and the square root of the
+    largest (NaN if one is NaN, as NumPy's max; 0 without points)."""
+    n = xy.shape[0]
+    d2 = np.empty(n)
+    top, nan = -np.inf, False
+    for i in range(n):
+        dx, dy = xy[i, 0] - x0, xy[i, 1] - y0
+        d2[i] = dx * dx + dy * dy
+        if d2[i] != d2[i]:
+            nan = True
+        elif d2[i] > top:
+            top = d2[i]
+    if n == 0:
+        return d2, 0.0
+    return d2, np.nan if nan else np.sqrt(top)
+
+
+@kernel
+def _nearer(xy: np.ndarray, own_d2: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """Per point: `own_d2` <= its least squared distance to `others` (False where a NaN
+    is involved, as NumPy's min and <= give)."""
+    out = np.empty(xy.shape[0], dtype=np.bool_)
+    for i in range(xy.shape[0]):
+        least, nan = np.inf, False
+        for j in range(others.shape[0]):
+            dx, dy = xy[i, 0] - others[j, 0], xy[i, 1] - others[j, 1]
+            d2 = dx * dx + dy * dy
+            if d2 != d2:
+                nan = True
+            elif d2 < least:
+                least = d2
+        out[i] = not nan and own_d2[i] <= least
+    return out
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The Voronoi cut's and the trunk's kernels compiled for x-y points (float64, C
+    order): a cluster's, a tree's trunk sightings."""
+    xy = np.array([[0.0, 1.0], [2.0, 0.5]])
+    own_d2, _ = _own_distances(xy, 0.0, 0.0)
+    _nearer(xy, own_d2, np.array([[1.0, 1.0]]))
+    _cell_means(xy, 0.3, 8)
 
 
 class _NdviOf:

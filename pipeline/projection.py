@@ -18,6 +18,7 @@ import numpy as np
 
 from treetraits.drivers.calibration import CameraModel
 from treetraits.drivers.records import Scan
+from treetraits.jit import kernel, warm_up
 from treetraits.pipeline.ndvi import PixelNdvi
 
 # Points nearer than this to the lens plane are "behind": the model is meaningless there
@@ -39,7 +40,10 @@ class PointStatus(enum.IntEnum):
 def xyz(points: np.ndarray) -> np.ndarray:
     """N x 3 float64 coordinates from a POINT_DTYPE array or any N x 3 array."""
     if points.dtype.names:
-        return np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+        # Straight into float64 (one conversion, not a float32 stack first).
+        out = np.empty((len(points), 3))
+        out[:, 0], out[:, 1], out[:, 2] = points["x"], points["y"], points["z"]
+        return out
     array = np.asarray(points, dtype=np.float64)
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"expected N x 3 points, got shape {array.shape}")
@@ -84,36 +88,60 @@ def project_points(
     min_depth: float = MIN_DEPTH_M,
 ) -> Projection:
     """Project LiDAR-frame points through `T_camera_lidar`, K and the distortion."""
-    p = xyz(points) @ T_camera_lidar[:3, :3].T + T_camera_lidar[:3, 3]
-    depth = p[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = p[:, 0] / depth
-        y = p[:, 1] / depth
-    k1, k2, p1, p2, k3 = camera.dist
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    K = camera.K
-    u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
-    v = K[1, 1] * yd + K[1, 2]
-    uv = np.column_stack([u, v])
-
-    in_front = depth >= min_depth
+    # The rotation by NumPy (BLAS), the rest in one compiled pass.
+    rotated = xyz(points) @ T_camera_lidar[:3, :3].T
     limit = max_valid_radius(camera.dist)
-    if np.isfinite(limit):
-        in_front &= r2 < limit * limit
-    with np.errstate(invalid="ignore"):
-        # Pixel centres sit at integer coordinates: pixel (c, r) covers [c-0.5, c+0.5).
-        column = np.floor(u + 0.5)
-        row = np.floor(v + 0.5)
-        in_image = (
-            in_front & (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height)
-        )
-    pixel = np.zeros((len(p), 2), dtype=np.int64)
-    pixel[in_image, 0] = column[in_image]
-    pixel[in_image, 1] = row[in_image]
+    uv, depth, in_front, in_image, pixel = _project(
+        rotated,
+        np.array(T_camera_lidar[:3, 3], dtype=np.float64),
+        np.array(camera.dist, dtype=np.float64),
+        np.array(camera.K, dtype=np.float64),
+        float(min_depth),
+        float(limit * limit) if np.isfinite(limit) else -1.0,
+        int(camera.width),
+        int(camera.height),
+    )
     return Projection(uv, depth, in_front, in_image, pixel)
+
+
+@kernel
+def _project(rotated, shift, dist, K, min_depth, limit2, width, height):
+    """The NumPy steps of the projection, point by point: `rotated` (N x 3, the points
+    rotated into the camera frame) moved by `shift`, divided by the depth, distorted,
+    through K, and tested against the lens model's radius (`limit2`, squared; < 0: none)
+    and the image."""
+    n = rotated.shape[0]
+    uv = np.empty((n, 2))
+    depth = np.empty(n)
+    in_front = np.empty(n, dtype=np.bool_)
+    in_image = np.empty(n, dtype=np.bool_)
+    pixel = np.zeros((n, 2), dtype=np.int64)
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for i in range(n):
+        px = rotated[i, 0] + shift[0]
+        py = rotated[i, 1] + shift[1]
+        d = rotated[i, 2] + shift[2]
+        depth[i] = d
+        # np.divide: the hardware's quotient, as NumPy's (`/` raises on a zero divisor).
+        x = np.divide(px, d)
+        y = np.divide(py, d)
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+        v = K[1, 1] * yd + K[1, 2]
+        uv[i, 0], uv[i, 1] = u, v
+        front = d >= min_depth
+        if limit2 >= 0.0:
+            front = front and r2 < limit2
+        in_front[i] = front
+        column, row = np.floor(u + 0.5), np.floor(v + 0.5)
+        inside = front and column >= 0 and column < width and row >= 0 and row < height
+        in_image[i] = inside
+        if inside:
+            pixel[i, 0], pixel[i, 1] = np.int64(column), np.int64(row)
+    return uv, depth, in_front, in_image, pixel
 
 
 @dataclass(frozen=True)
@@ -143,25 +171,37 @@ def occluded(projection: Projection, width: int, height: int, rule: OcclusionRul
     if not rule.enabled or not projection.in_image.any():
         return hidden
     b = rule.block_px
-    rows, cols = -(-height // b), -(-width // b)
-    index = np.flatnonzero(projection.in_image)
-    col, row = projection.pixel[index, 0] // b, projection.pixel[index, 1] // b
-    block = row * cols + col
-    depth = projection.depth[index]
-    nearest = np.full(rows * cols, np.inf)
-    np.minimum.at(nearest, block, depth)
-    nearest = nearest.reshape(rows, cols)
-    n = rule.neighbours
-    if n > 0:
-        # Minimum over the (2n+1)^2 blocks around each block (a min filter on the grid).
-        padded = np.pad(nearest, n, constant_values=np.inf)
-        spread = nearest.copy()
-        for dr in range(2 * n + 1):
-            for dc in range(2 * n + 1):
-                np.minimum(spread, padded[dr : dr + rows, dc : dc + cols], out=spread)
-        nearest = spread
-    front = nearest.ravel()[block]
-    hidden[index] = depth > front + rule.margin_m + rule.margin_rel * front
+    return _hidden(
+        projection.in_image,
+        projection.pixel,
+        projection.depth,
+        b,
+        -(-height // b),
+        -(-width // b),
+        rule.neighbours,
+        float(rule.margin_m),
+        float(rule.margin_rel),
+    )
+
+
+@kernel
+def _hidden(in_image, pixel, depth, b, rows, cols, n, margin_m, margin_rel):
+    """`occluded`'s z-buffer in two passes: each block's nearest depth, then each point
+    against the nearest of the blocks around its own (the grid's edge as +inf padding)."""
+    nearest = np.full((rows, cols), np.inf)
+    for i in range(depth.shape[0]):
+        if in_image[i]:
+            r, c = pixel[i, 1] // b, pixel[i, 0] // b
+            nearest[r, c] = min(nearest[r, c], depth[i])
+    hidden = np.zeros(depth.shape[0], dtype=np.bool_)
+    for i in range(depth.shape[0]):
+        if in_image[i]:
+            r, c = pixel[i, 1] // b, pixel[i, 0] // b
+            front = np.inf
+            for rr in range(max(r - n, 0), min(r + n + 1, rows)):
+                for cc in range(max(c - n, 0), min(c + n + 1, cols)):
+                    front = min(front, nearest[rr, cc])
+            hidden[i] = depth[i] > front + margin_m + margin_rel * front
     return hidden
 
 
@@ -199,18 +239,56 @@ def point_ndvi(
         projection = project_points(points, camera, T_camera_lidar)
     rule = OcclusionRule() if rule is None else rule
     n = len(projection.depth)
-    status = np.full(n, PointStatus.OUTSIDE, dtype=np.uint8)
-    status[~projection.in_front] = PointStatus.BEHIND
-    # In front but beyond the lens model's fold-back radius: OUTSIDE, not BEHIND.
-    status[(projection.depth >= MIN_DEPTH_M) & ~projection.in_front] = PointStatus.OUTSIDE
+    hidden = occluded(projection, camera.width, camera.height, rule)
+    status, visible = _statuses(projection.depth, projection.in_front, projection.in_image, hidden)
     values = np.full(n, np.nan, dtype=np.float32)
-    visible = projection.in_image & ~occluded(projection, camera.width, camera.height, rule)
-    status[projection.in_image] = PointStatus.OCCLUDED
     cols, rows = projection.pixel[visible, 0], projection.pixel[visible, 1]
     sampled = ndvi_frame[rows, cols].astype(np.float32)
     values[visible] = sampled
     status[visible] = np.where(np.isnan(sampled), PointStatus.NO_NDVI, PointStatus.OK)
     return PointNdvi(values, status)
+
+
+@kernel
+def _statuses(depth, in_front, in_image, hidden):
+    """Each point's status short of its NDVI (BEHIND, OUTSIDE, or OCCLUDED for every
+    in-image point) and whether it is visible (in the image and not hidden)."""
+    status = np.empty(depth.shape[0], dtype=np.uint8)
+    visible = np.empty(depth.shape[0], dtype=np.bool_)
+    for i in range(depth.shape[0]):
+        if in_image[i]:
+            status[i] = _OCCLUDED
+        elif in_front[i] or depth[i] >= MIN_DEPTH_M:
+            # In front but beyond the lens model's fold-back radius: OUTSIDE, not BEHIND.
+            status[i] = _OUTSIDE
+        else:
+            status[i] = _BEHIND
+        visible[i] = in_image[i] and not hidden[i]
+    return status, visible
+
+
+_OCCLUDED, _OUTSIDE, _BEHIND = (
+    np.uint8(PointStatus.OCCLUDED),
+    np.uint8(PointStatus.OUTSIDE),
+    np.uint8(PointStatus.BEHIND),
+)
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The projection's kernels compiled for a scan's types: two points, one in a
+    640 x 480 image, one at zero depth."""
+    camera = CameraModel(
+        640,
+        480,
+        np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]),
+        np.array([-0.1, 0.01, 0.001, 0.001, 0.0]),
+        {"red": 2, "nir": 0},
+    )
+    points = np.array([[0.1, 0.2, 5.0], [1.0, 0.0, 0.0]])
+    projection = project_points(points, camera, np.eye(4))
+    hidden = occluded(projection, camera.width, camera.height, OcclusionRule())
+    _statuses(projection.depth, projection.in_front, projection.in_image, hidden)
 
 
 # --- which frame goes with a scan --------------------------------------------------------

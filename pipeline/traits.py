@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 
-from treetraits.drivers.records import row_items
-from treetraits.pipeline.clustering import stable_order
+from treetraits.jit import kernel, warm_up
+from treetraits.pipeline.clustering import kernel_layout, stable_order
 from treetraits.pipeline.config import TraitsConfig
 
 # Bearings for the per-slice upper bound: a set's true diameter D is at most its largest
@@ -221,10 +221,9 @@ class RobustTraits:
             points_base, ring, ground_z_base, points_world, ground_world, pose_sigma
         ):
             return  # the finer outline, this scan in it, is the outline now
-        points_world = np.asarray(points_world, dtype=float)
-        keys, first = np.unique(_voxel_keys(points_world, self.voxel), return_index=True)
-        # one hit per cell per scan (`take`: as points_world[first], rows as blocks)
-        self._pending.append((keys, points_world.take(first, axis=0)))
+        # One hit per cell per scan: the cells in key order, each with its first return.
+        keys, first = _scan_cells(kernel_layout(points_world), float(self.voxel))
+        self._pending.append((keys, first))
         self._pending_count += len(keys)
         # Fold pending cells in once they outnumber the grid: amortised O(n log n).
         if self._pending_count > max(len(self._keys), 5000):
@@ -290,29 +289,18 @@ class RobustTraits:
         # whole grid again at every scan (the outline's centre is asked every scan).
         keys, points, hits = _pending_cells(self._pending, self._pending_count)
         self._pending, self._pending_count = [], 0
-        at = np.searchsorted(self._keys, keys)
-        if len(self._keys):  # a key past the last one reads the last one: not its own
-            known = self._keys.take(at, mode="clip") == keys
-        else:
-            known = np.zeros(len(keys), dtype=bool)
-        new = ~known
-        grid_at = at[known]  # distinct: the pending keys are
-        before = self._hits[grid_at]
-        after = before + hits[known]
-        grid_hits = self._hits.copy()
-        grid_hits[grid_at] = after
-        # The cells this merge brings to min_hits: grid cells crossing it, new ones at it.
+        # One pass of a sorted merge (a kernel): what searchsorted, np.insert and the
+        # masks of the cells reaching min_hits took a dozen NumPy calls for.
+        keys, points, hits, reached = _merged_cells(
+            kernel_layout(self._keys, np.int64),
+            kernel_layout(self._points),
+            kernel_layout(self._hits, np.int64),
+            kernel_layout(keys, np.int64),
+            kernel_layout(points),
+            kernel_layout(hits, np.int64),
+            self.config.min_hits,
+        )
         need = self.config.min_hits
-        new_points, new_hits = points.compress(new, axis=0), hits[new]
-        reached = np.vstack(
-            [
-                self._points[grid_at[(before < need) & (after >= need)]],
-                new_points[new_hits >= need],
-            ]
-        )
-        keys, points, hits = _inserted(
-            at[new], (self._keys, keys[new]), (self._points, new_points), (grid_hits, new_hits)
-        )
         coarsened = len(keys) > self.config.max_points
         while len(keys) > self.config.max_points:
             self.voxel *= 2.0
@@ -390,23 +378,6 @@ def _increasing(keys: np.ndarray) -> bool:
     return len(keys) < 2 or bool((keys[1:] > keys[:-1]).all())
 
 
-def _inserted(at: np.ndarray, *pairs: tuple[np.ndarray, np.ndarray]) -> list[np.ndarray]:
-    """np.insert(grid, at, values) for each (grid, values) pair (along the first axis),
-    the places worked out once: `at` is non-decreasing (searchsorted of sorted keys), so
-    the values land at at + 0, 1, 2, ... as np.insert puts them."""
-    size = len(pairs[0][0]) + len(at)
-    slots = at + np.arange(len(at))
-    kept = np.ones(size, dtype=bool)
-    kept[slots] = False
-    out = []
-    for grid, values in pairs:
-        merged = np.empty((size, *grid.shape[1:]), dtype=grid.dtype)
-        merged[slots] = values
-        row_items(merged)[kept] = row_items(grid)
-        out.append(merged)
-    return out
-
-
 def _unique_cells(keys: np.ndarray, points: np.ndarray, hits: np.ndarray):
     """Cells in key order: each key's first point in arrival order (deterministic) and
     its hits summed."""
@@ -421,6 +392,95 @@ def _voxel_keys(xyz: np.ndarray, size: float) -> np.ndarray:
     cells = scaled.astype(np.int64)
     cells += 1 << 20
     return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+
+
+@kernel
+def _scan_cells(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(_voxel_keys(xyz, size), return_index=True) and the rows it picks: the
+    distinct cell keys in increasing order, each with the first of `xyz`'s rows in it.
+    The keys by `_voxel_keys`' steps; a stable sort keeps each key's first row first."""
+    n = xyz.shape[0]
+    keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        key = np.int64(0)
+        for c in range(3):
+            cell = np.int64(np.floor(xyz[i, c] / size)) + np.int64(1 << 20)
+            key |= cell << np.int64(21 * (2 - c))
+        keys[i] = key
+    order = np.argsort(keys, kind="mergesort")
+    distinct = 0
+    for k in range(n):
+        if k == 0 or keys[order[k]] != keys[order[k - 1]]:
+            order[distinct] = order[k]
+            distinct += 1
+    unique = np.empty(distinct, dtype=np.int64)
+    rows = np.empty((distinct, 3))
+    for k in range(distinct):
+        unique[k] = keys[order[k]]
+        rows[k] = xyz[order[k]]
+    return unique, rows
+
+
+@kernel
+def _merged_cells(grid_keys, grid_points, grid_hits, keys, points, hits, need):
+    """A grid of cells (keys increasing) and new cells (keys increasing, distinct) merged
+    in key order: a key in both keeps the grid's return and sums the hits, a new key is
+    inserted. Also the returns of the cells this brings to `need` hits: the grid's that
+    cross it (grid order), then the new ones at it (their order)."""
+    size = grid_keys.shape[0] + keys.shape[0]
+    out_keys = np.empty(size, dtype=np.int64)
+    out_hits = np.empty(size, dtype=np.int64)
+    out_points = np.empty((size, 3))
+    crossed = np.empty(keys.shape[0], dtype=np.int64)  # rows of the grid
+    fresh = np.empty(keys.shape[0], dtype=np.int64)  # rows of the new cells
+    n_crossed = n_fresh = 0
+    g = o = 0
+    for k in range(keys.shape[0]):
+        while g < grid_keys.shape[0] and grid_keys[g] < keys[k]:
+            out_keys[o], out_hits[o], out_points[o] = grid_keys[g], grid_hits[g], grid_points[g]
+            g += 1
+            o += 1
+        if g < grid_keys.shape[0] and grid_keys[g] == keys[k]:
+            after = grid_hits[g] + hits[k]
+            if grid_hits[g] < need and after >= need:
+                crossed[n_crossed] = g
+                n_crossed += 1
+            out_keys[o], out_hits[o], out_points[o] = grid_keys[g], after, grid_points[g]
+            g += 1
+        else:
+            if hits[k] >= need:
+                fresh[n_fresh] = k
+                n_fresh += 1
+            out_keys[o], out_hits[o], out_points[o] = keys[k], hits[k], points[k]
+        o += 1
+    while g < grid_keys.shape[0]:
+        out_keys[o], out_hits[o], out_points[o] = grid_keys[g], grid_hits[g], grid_points[g]
+        g += 1
+        o += 1
+    reached = np.empty((n_crossed + n_fresh, 3))
+    for r in range(n_crossed):
+        reached[r] = grid_points[crossed[r]]
+    for r in range(n_fresh):
+        reached[n_crossed + r] = points[fresh[r]]
+    # Copies: the grid is kept, the rows of the keys both had are not.
+    return out_keys[:o].copy(), out_points[:o].copy(), out_hits[:o].copy(), reached
+
+
+@warm_up
+def compile_kernels() -> None:
+    """The outline's kernels compiled for what a scan gives them: a cluster's returns in
+    the world frame (float64 rows), and the cells merged into the grid."""
+    xyz = np.array([[0.1, 0.2, 0.3], [0.15, 0.2, 0.3], [1.0, -1.0, 2.0]])
+    keys, points = _scan_cells(xyz, 0.1)
+    _merged_cells(
+        keys[:1],
+        points[:1],
+        np.ones(1, dtype=np.int64),
+        keys,
+        points,
+        np.ones(len(keys), dtype=np.int64),
+        2,
+    )
 
 
 def new_traits(config: TraitsConfig) -> PaperTraits | RobustTraits:

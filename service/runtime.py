@@ -79,8 +79,11 @@ PIPELINE_MODULES = (
     "treetraits.pipeline.clustering",
     "treetraits.pipeline.deskew",
     "treetraits.pipeline.detection",
+    "treetraits.pipeline.mapper",
+    "treetraits.pipeline.projection",
     "treetraits.pipeline.stems",
     "treetraits.pipeline.terrain",
+    "treetraits.pipeline.traits",
 )
 
 

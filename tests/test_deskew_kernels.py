@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.test_deskew import T_BASE_LIDAR, samples, sweep
+from tests.test_deskew import SWEEP_NS, T_BASE_LIDAR, T_DEVICE_END, T_HOST_END, samples, sweep
+from treetraits.drivers.records import POINT_DTYPE, Scan, take_points
 from treetraits.pipeline import deskew as deskew_module
-from treetraits.pipeline.deskew import _blend, deskew
+from treetraits.pipeline.deskew import _blend, deskew, deskew_scan, scan_point_host_times
+from treetraits.pipeline.projection import scan_mid_time
 
 
 def numpy_deskew(points, point_times, sample_times, sample_poses, t_ref, T_base_lidar):
@@ -60,3 +62,44 @@ def test_deskew_is_numpys_bit_for_bit(arrangement):
     # A scan compiles nothing beyond the warm-up.
     deskew_module.compile_kernels()
     assert len(deskew_module._translate_and_blend.signatures) == 1
+
+
+def numpy_deskew_scan(scan, sample_times, sample_poses, t_ref, T_base_lidar):
+    """`deskew_scan` as NumPy read and wrote the fields before its kernels."""
+    points = take_points(scan.points, slice(None))
+    xyz = np.empty((len(points), 3))
+    xyz[:, 0], xyz[:, 1], xyz[:, 2] = points["x"], points["y"], points["z"]
+    moved = deskew(
+        xyz, scan_point_host_times(scan), sample_times, sample_poses, t_ref, T_base_lidar
+    )
+    points["x"], points["y"], points["z"] = moved[:, 0], moved[:, 1], moved[:, 2]
+    return points
+
+
+@pytest.mark.parametrize("arrangement", ["firing-order", "shuffled", "one-sample"])
+def test_deskew_scan_reads_and_writes_the_fields_as_numpy(arrangement):
+    """The walled yard's sweep as a scan on the sensor's clock (float32 fields, int64
+    times): every field of every record the same bytes as NumPy gave."""
+    points, dt, _ = sweep()
+    cloud = np.zeros(len(points), dtype=POINT_DTYPE)
+    cloud["x"], cloud["y"], cloud["z"] = points.T
+    cloud["t"] = T_DEVICE_END - SWEEP_NS // 2 + dt
+    cloud["intensity"] = np.arange(len(cloud)) % 251
+    cloud["ring"] = np.arange(len(cloud)) % 16
+    if arrangement == "shuffled":
+        cloud = cloud[np.random.default_rng(7).permutation(len(cloud))]
+    t_start, t_end = int(cloud["t"].min()), int(cloud["t"].max())
+    scan = Scan(cloud, t_start, t_end, T_HOST_END, True, 76, 0, "VLP-16", "strongest")
+    middle = scan_mid_time(scan)
+    times, poses = samples()
+    if arrangement == "one-sample":
+        times, poses = times[:1], poses[:1]
+    want = numpy_deskew_scan(scan, middle + times, poses, middle, T_BASE_LIDAR)
+    got = deskew_scan(scan, middle + times, poses, middle, T_BASE_LIDAR)
+    assert got.points.dtype == want.dtype and got.points.tobytes() == want.tobytes()
+    moved = np.abs(got.points["x"] - scan.points["x"]).max()
+    assert moved > 0.05 if arrangement != "one-sample" else moved == 0
+    assert scan.points.tobytes() == cloud.tobytes()  # the scan given is left as it was
+    deskew_module.compile_kernels()
+    assert len(deskew_module._read_points.signatures) == 1
+    assert len(deskew_module._write_points.signatures) == 1
