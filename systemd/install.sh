@@ -129,8 +129,8 @@ make_venv() {
 }
 
 # The unit's NUMBA_CACHE_DIR (CacheDirectory=treetraits), filled now as the service's user:
-# its first start then loads the compiled kernels (~0.3 s) instead of compiling them before
-# READY (~13 s on the development machine, several times that on a Xavier).
+# its first start then loads the compiled kernels (~0.4 s) instead of compiling them before
+# READY (28-30 s on the development machine, several times that on a Xavier).
 CACHE_DIR=/var/cache/treetraits
 
 compile_kernels() {
