@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from tests.kernel_checks import assert_warm_ups_cover
 from tests.test_classify import scan_of
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.pipeline import classify, detection, visibility
@@ -257,12 +258,11 @@ def test_a_scan_compiles_nothing_beyond_the_warm_ups():
         visibility._passed_over,
         visibility._wrap_one,
     )
-    classify.compile_kernels()
-    visibility.compile_kernels()
-    warmed = [list(k.signatures) for k in kernels]
-    assert all(len(signatures) == 1 for signatures in warmed)
-    detection.detect(scan_points(), None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
-    assert [list(k.signatures) for k in kernels] == warmed
+    assert_warm_ups_cover(
+        kernels,
+        (classify.compile_kernels, visibility.compile_kernels),
+        lambda: detection.detect(scan_points(), None, DEFAULT_T_BASE_LIDAR, DetectionConfig()),
+    )
 
 
 def test_a_clusters_ndvi_and_share_are_numpys_means():

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -101,6 +102,25 @@ def grid_drive() -> Drive:
     The back trees are seen only from 9.5-15 m, mostly behind the middle ones."""
     specs = grid_orchard(2, 3, 5.0, 5.0, np.random.default_rng(1))
     return drive(specs, start=(-9.5, 2.5), heading=0.0, speed=0.5, seconds=20.0, frames=True)
+
+
+def map_twin_drive_watching(
+    config: MapperConfig, owner: object, name: str, spy: Callable, trees: bool = False
+) -> None:
+    """The mapper over the twin drive (`grid_drive`) with `owner.name` replaced meanwhile
+    by `spy(original)`, which records what it is called with (kernel tests replay those
+    inputs); `trees`: `mapper.trees()` after every scan too."""
+    data = grid_drive()
+    mapper = TreeMapper(config, data.calibration)
+    original = getattr(owner, name)
+    setattr(owner, name, spy(original))
+    try:
+        for scan, pose in zip(data.scans, data.poses, strict=True):
+            mapper.process(scan, None, pose)
+            if trees:
+                mapper.trees()
+    finally:
+        setattr(owner, name, original)
 
 
 @functools.cache

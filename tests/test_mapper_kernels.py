@@ -10,10 +10,11 @@ import functools
 
 import numpy as np
 
-from tests.test_mapper import grid_drive
+from tests.kernel_checks import assert_warm_ups_cover
+from tests.test_mapper import map_twin_drive_watching
 from treetraits.pipeline import mapper as mapper_module
 from treetraits.pipeline.config import MapperConfig
-from treetraits.pipeline.mapper import TreeMapper, _Centres, _crowded_places
+from treetraits.pipeline.mapper import _Centres, _crowded_places
 
 
 def numpy_nearest_is(centres: _Centres, xy: np.ndarray, tree_id: int) -> np.ndarray:
@@ -37,20 +38,15 @@ def numpy_nearest_is(centres: _Centres, xy: np.ndarray, tree_id: int) -> np.ndar
 def cuts() -> tuple[tuple[_Centres, np.ndarray, int], ...]:
     """Every (centres, x-y points, tree) the mapper cut on the twin drive."""
     seen = []
-    nearest_is = _Centres.nearest_is
 
-    def recording(self, xy, tree_id):
-        seen.append((self, np.array(xy), tree_id))
-        return nearest_is(self, xy, tree_id)
+    def spy(nearest_is):
+        def recording(self, xy, tree_id):
+            seen.append((self, np.array(xy), tree_id))
+            return nearest_is(self, xy, tree_id)
 
-    data = grid_drive()
-    mapper = TreeMapper(MapperConfig(), data.calibration)
-    _Centres.nearest_is = recording
-    try:
-        for scan, pose in zip(data.scans, data.poses, strict=True):
-            mapper.process(scan, None, pose)
-    finally:
-        _Centres.nearest_is = nearest_is
+        return recording
+
+    map_twin_drive_watching(MapperConfig(), _Centres, "nearest_is", spy)
     return tuple(seen)
 
 
@@ -96,14 +92,14 @@ def test_crowded_cuts_are_numpy_s():
 
 def test_cuts_compile_nothing_beyond_the_warm_up():
     kernels = (mapper_module._own_distances, mapper_module._nearer, mapper_module._cell_means)
-    mapper_module.compile_kernels()
-    warmed = [list(k.signatures) for k in kernels]
-    assert all(len(signatures) == 1 for signatures in warmed)
-    for centres, xy, tree_id in cuts()[:50]:
-        crowded(centres, tree_id, 0).nearest_is(np.asarray(xy)[::-1], tree_id)
-    for xy, cell in sightings()[:50]:
-        _crowded_places(xy[::-1], cell)
-    assert [list(k.signatures) for k in kernels] == warmed
+
+    def run() -> None:  # reversed: strided views, as callers may pass them
+        for centres, xy, tree_id in cuts()[:50]:
+            crowded(centres, tree_id, 0).nearest_is(np.asarray(xy)[::-1], tree_id)
+        for xy, cell in sightings()[:50]:
+            _crowded_places(xy[::-1], cell)
+
+    assert_warm_ups_cover(kernels, (mapper_module.compile_kernels,), run)
 
 
 def test_a_point_halfway_stays_with_the_tree_as_numpy_kept_it():
@@ -138,21 +134,15 @@ def numpy_crowded_places(xy: np.ndarray, cell: float, places: int = 8) -> np.nda
 def sightings() -> tuple[tuple[np.ndarray, float], ...]:
     """Every (trunk sightings, cell) the mapper placed a trunk from on the twin drive."""
     seen = []
-    crowded_places = mapper_module._crowded_places
 
-    def recording(xy, cell, *args):
-        seen.append((np.array(xy), cell))
-        return crowded_places(xy, cell, *args)
+    def spy(crowded_places):
+        def recording(xy, cell, *args):
+            seen.append((np.array(xy), cell))
+            return crowded_places(xy, cell, *args)
 
-    data = grid_drive()
-    mapper = TreeMapper(MapperConfig(), data.calibration)
-    mapper_module._crowded_places = recording
-    try:
-        for scan, pose in zip(data.scans, data.poses, strict=True):
-            mapper.process(scan, None, pose)
-            mapper.trees()
-    finally:
-        mapper_module._crowded_places = crowded_places
+        return recording
+
+    map_twin_drive_watching(MapperConfig(), mapper_module, "_crowded_places", spy, trees=True)
     return tuple(seen)
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from tests.kernel_checks import assert_warm_ups_cover
 from tests.test_terrain import RollingGround, one_scan, rotation
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
 from treetraits.pipeline import detection, terrain
@@ -230,9 +231,8 @@ def test_a_scan_compiles_nothing_beyond_the_warm_ups():
         terrain._grow_once,
         detection._crop_level,
     )
-    terrain.compile_kernels()
-    detection.compile_kernels()
-    warmed = [list(k.signatures) for k in kernels]
-    assert all(len(signatures) == 1 for signatures in warmed)
-    detect(scan_points(), None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
-    assert [list(k.signatures) for k in kernels] == warmed
+    assert_warm_ups_cover(
+        kernels,
+        (terrain.compile_kernels, detection.compile_kernels),
+        lambda: detect(scan_points(), None, DEFAULT_T_BASE_LIDAR, DetectionConfig()),
+    )

@@ -10,11 +10,11 @@ import functools
 import numpy as np
 import pytest
 
-from tests.test_mapper import grid_drive
+from tests.kernel_checks import assert_warm_ups_cover
+from tests.test_mapper import map_twin_drive_watching
 from treetraits.drivers.records import row_items
 from treetraits.pipeline import traits as traits_module
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
-from treetraits.pipeline.mapper import TreeMapper
 from treetraits.pipeline.traits import (
     RobustTraits,
     _pending_cells,
@@ -30,21 +30,16 @@ CONFIG = TraitsConfig(method="robust")
 def outline_inputs() -> tuple[tuple[np.ndarray, ...], ...]:
     """Per tree, the returns (world frame) its outline was given scan by scan."""
     seen: dict[int, list[np.ndarray]] = {}
-    observe = RobustTraits.observe
 
-    def recording(self, points_base, ring, ground_z, points_world=None, *args, **kwargs):
-        if points_world is not None and len(points_world):
-            seen.setdefault(id(self), []).append(np.array(points_world, dtype=float))
-        return observe(self, points_base, ring, ground_z, points_world, *args, **kwargs)
+    def spy(observe):
+        def recording(self, points_base, ring, ground_z, points_world=None, *args, **kwargs):
+            if points_world is not None and len(points_world):
+                seen.setdefault(id(self), []).append(np.array(points_world, dtype=float))
+            return observe(self, points_base, ring, ground_z, points_world, *args, **kwargs)
 
-    data = grid_drive()
-    mapper = TreeMapper(MapperConfig(traits=CONFIG), data.calibration)
-    RobustTraits.observe = recording
-    try:
-        for scan, pose in zip(data.scans, data.poses, strict=True):
-            mapper.process(scan, None, pose)
-    finally:
-        RobustTraits.observe = observe
+        return recording
+
+    map_twin_drive_watching(MapperConfig(traits=CONFIG), RobustTraits, "observe", spy)
     return tuple(tuple(clusters) for clusters in seen.values() if len(clusters) >= 5)
 
 
@@ -194,11 +189,11 @@ def test_absorbed_outlines_are_those_numpy_kept():
 
 def test_outlines_compile_nothing_beyond_the_warm_up():
     kernels = (traits_module._scan_cells, traits_module._merged_cells)
-    traits_module.compile_kernels()
-    warmed = [list(k.signatures) for k in kernels]
-    assert all(len(signatures) == 1 for signatures in warmed)
-    outline = RobustTraits(CONFIG)
-    for points in outline_inputs()[0]:
-        outline.observe(None, None, 0.0, points.astype(np.float32)[::-1], 0.0)
-        outline.centre()
-    assert [list(k.signatures) for k in kernels] == warmed
+
+    def run() -> None:  # float32 and reversed: the layouts callers may pass
+        outline = RobustTraits(CONFIG)
+        for points in outline_inputs()[0]:
+            outline.observe(None, None, 0.0, points.astype(np.float32)[::-1], 0.0)
+            outline.centre()
+
+    assert_warm_ups_cover(kernels, (traits_module.compile_kernels,), run)
