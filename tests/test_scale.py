@@ -99,11 +99,15 @@ def test_retire_m_must_keep_trees_in_view():
     assert MapperConfig(tracking=TrackingConfig(retire_m=0.0)).tracking.retire_m == 0.0
 
 
-def test_geojson_is_json_dumps_text_and_reused(tmp_path):
+@pytest.mark.parametrize("per_write", [1000, 1, 2, 3])
+def test_geojson_is_json_dumps_text_and_reused(tmp_path, monkeypatch, per_write):
     """trees.geojson's text is json.dump(indent=1)'s byte for byte, when records are
-    reused from the previous write too."""
+    reused from the previous write too, and however many features are joined per write
+    (a slice boundary between any two of them)."""
+    from treetraits.pipeline import georef
     from treetraits.pipeline.georef import RenderCache
 
+    monkeypatch.setattr(georef, "FEATURES_PER_WRITE", per_write)
     _, writer, _, _ = survey("paper", 0.0, tmp_path / "run")
     trees = writer.georeferenced()
     assert len(trees) >= 4
