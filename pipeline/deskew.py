@@ -13,7 +13,7 @@ around its firing time, and the point is carried through it into the frame at `t
 The interpolation blends the neighbouring samples' transforms (the points they give)
 rather than their angles: 10 ms apart at 1 rad/s, the blend differs from the exact
 rotation by ~1e-5 rad. Points fired outside the sampled span keep the nearest sample's
-pose. NumPy rotates the points, a kernel (`treetraits.jit`) moves and blends them.
+pose. One compiled pass (`treetraits.jit`) moves and blends every point.
 
 Clocks: `point_times`, `sample_times` and `t_ref` must share one clock. A `Scan`'s
 per-point `t` is on the sensor's clock (VLP-16 microseconds past the hour): use
@@ -52,67 +52,67 @@ def deskew(
     `sample_times` (M >= 1, increasing). `T_base_lidar` (4, 4): the LiDAR's mounting
     (identity when None: the points are in the base frame). Returns (N, 3) float64."""
     xyz = np.asarray(points, dtype=float).reshape(-1, 3)
+    times, a = _sample_transforms(sample_times, sample_poses, t_ref, T_base_lidar)
+    if len(times) == 1 or len(xyz) == 0:
+        return xyz.copy()
+    out = np.empty(xyz.shape)
+    t = np.asarray(point_times, dtype=np.int64)
+    columns = (xyz[:, 0], xyz[:, 1], xyz[:, 2])
+    _move_points(*columns, t, np.int64(0), times, a, out[:, 0], out[:, 1], out[:, 2])
+    return out
+
+
+def _sample_transforms(
+    sample_times: np.ndarray,
+    sample_poses: np.ndarray,
+    t_ref: int,
+    T_base_lidar: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The sample times (int64, C-ordered) and A_k (M, 4, 4): the LiDAR frame at sample
+    k seen from the LiDAR frame at `t_ref`. ValueError for samples that do not fit."""
     times = np.array(sample_times, dtype=np.int64)  # a copy: C-ordered, writable (kernel)
     poses = np.asarray(sample_poses, dtype=float).reshape(-1, 4, 4)
     if len(times) != len(poses) or len(times) == 0:
         raise ValueError("deskew needs one pose per sample time, and at least one")
     if np.any(np.diff(times) <= 0):
         raise ValueError("deskew: sample times must increase")
-    if len(times) == 1 or len(xyz) == 0:
-        return xyz.copy()
+    if len(times) == 1:
+        return times, np.eye(4)[None]  # one pose: nothing moves
     base_lidar = np.eye(4) if T_base_lidar is None else np.asarray(T_base_lidar, dtype=float)
     lidar_base = np.linalg.inv(base_lidar)
-
     ref = _blend(poses, times, np.array([t_ref], dtype=np.int64))[0]
-    # A_k: the LiDAR frame at sample k, seen from the LiDAR frame at t_ref.
-    a = lidar_base @ np.linalg.inv(ref) @ poses @ base_lidar  # (M, 4, 4)
-
-    t = np.clip(np.asarray(point_times, dtype=np.int64), times[0], times[-1])
-    order = None
-    if np.any(t[1:] < t[:-1]):  # a scan is in firing order; anything else is sorted here
-        order = np.argsort(t, kind="stable")
-        t, xyz = t[order], xyz[order]
-    # Both neighbours' rotations applied to each point by NumPy (BLAS), one interval (a
-    # contiguous run of points) at a time: a few 3x3 products over many points beat a
-    # 3x3 per point by ~10x. The translations and the blend in one compiled pass.
-    edges = np.concatenate(([0], np.searchsorted(t, times[1:-1], side="right"), [len(t)]))
-    rotated = np.empty((2, *xyz.shape))
-    for j in range(len(times) - 1):
-        lo, hi = edges[j], edges[j + 1]
-        if lo < hi:
-            np.matmul(xyz[lo:hi], a[j, :3, :3].T, out=rotated[0, lo:hi])
-            np.matmul(xyz[lo:hi], a[j + 1, :3, :3].T, out=rotated[1, lo:hi])
-    out = np.empty(xyz.shape)
-    _translate_and_blend(
-        rotated,
-        np.ascontiguousarray(a[:, :3, 3]),
-        t,
-        times,
-        edges,
-        _NO_ORDER if order is None else order,
-        out,
-    )
-    return out
-
-
-_NO_ORDER = np.empty(0, dtype=np.int64)  # the points are in firing order already
+    return times, lidar_base @ np.linalg.inv(ref) @ poses @ base_lidar
 
 
 @kernel
-def _translate_and_blend(rotated, shifts, t, times, edges, order, out):
-    """Per point of interval j (points edges[j]:edges[j + 1], sorted by time `t`): its
-    rotations by samples j and j + 1 (`rotated[0]`, `rotated[1]`) moved by their
-    `shifts` and blended linearly by its time between the samples, into `out` (at
-    `order[k]` for the k-th sorted point, if `order` is not empty), NumPy's steps."""
-    for j in range(times.shape[0] - 1):
-        span = np.float64(times[j + 1] - times[j])
-        for k in range(edges[j], edges[j + 1]):
-            w = np.float64(t[k] - times[j]) / span
-            into = order[k] if order.shape[0] else k
-            for c in range(3):
-                p0 = rotated[0, k, c] + shifts[j, c]
-                p1 = rotated[1, k, c] + shifts[j + 1, c]
-                out[into, c] = p0 + w * (p1 - p0)
+def _move_points(x, y, z, t, offset, times, a, out_x, out_y, out_z):
+    """Each point (x, y, z at time t + offset, clipped to the samples' span) through
+    A_j and A_j+1 of its interval (times[j] < t <= times[j + 1]; the first interval from
+    times[0] on) and blended linearly by its time between them, into out_x, out_y, out_z
+    (float64, or float32 rounded to nearest as NumPy casts; they may be x, y, z: a point
+    is read before it is written). The rotations are written out as sums, not left to
+    BLAS, so every machine gives the same bits; one pass without temporaries, the
+    interval found by a walk (a scan comes in firing order)."""
+    last = times.shape[0] - 1
+    j = 0
+    for i in range(x.shape[0]):
+        ti = min(max(np.int64(t[i]) + offset, times[0]), times[last])
+        while j > 0 and ti <= times[j]:
+            j -= 1
+        while j < last - 1 and ti > times[j + 1]:
+            j += 1
+        w = np.float64(ti - times[j]) / np.float64(times[j + 1] - times[j])
+        px, py, pz = np.float64(x[i]), np.float64(y[i]), np.float64(z[i])
+        b, c = a[j], a[j + 1]
+        p0 = px * b[0, 0] + py * b[0, 1] + pz * b[0, 2] + b[0, 3]
+        p1 = px * c[0, 0] + py * c[0, 1] + pz * c[0, 2] + c[0, 3]
+        out_x[i] = p0 + w * (p1 - p0)
+        p0 = px * b[1, 0] + py * b[1, 1] + pz * b[1, 2] + b[1, 3]
+        p1 = px * c[1, 0] + py * c[1, 1] + pz * c[1, 2] + c[1, 3]
+        out_y[i] = p0 + w * (p1 - p0)
+        p0 = px * b[2, 0] + py * b[2, 1] + pz * b[2, 2] + b[2, 3]
+        p1 = px * c[2, 0] + py * c[2, 1] + pz * c[2, 2] + c[2, 3]
+        out_z[i] = p0 + w * (p1 - p0)
 
 
 def _blend(poses: np.ndarray, times: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -136,41 +136,23 @@ def deskew_scan(
 ) -> Scan:
     """The scan with every point de-skewed to `t_ref` (host clock); other fields kept."""
     points = take_points(scan.points, slice(None))
-    # The fields read (into float64, as `deskew` works) and written back in one compiled
-    # pass each, where NumPy took one per field; the times as `scan_point_host_times`.
-    xyz, times = _read_points(
-        points["x"], points["y"], points["z"], points["t"], np.int64(scan.t_host - scan.t_end)
-    )
-    moved = deskew(xyz, times, sample_times, sample_poses, t_ref, T_base_lidar)
-    _write_points(moved, points["x"], points["y"], points["z"])
+    times, a = _sample_transforms(sample_times, sample_poses, t_ref, T_base_lidar)
+    if len(times) > 1 and len(points):
+        # The float32 fields moved in place by one compiled pass; the times as
+        # `scan_point_host_times` gives them.
+        fields = (points["x"], points["y"], points["z"])
+        offset = np.int64(scan.t_host - scan.t_end)
+        _move_points(*fields, points["t"], offset, times, a, *fields)
     return replace(scan, points=points)
-
-
-@kernel
-def _read_points(x, y, z, t, offset):
-    """(N x 3 float64 of the fields x, y, z; t + offset as int64), NumPy's conversions."""
-    xyz = np.empty((x.shape[0], 3))
-    times = np.empty(x.shape[0], dtype=np.int64)
-    for i in range(x.shape[0]):
-        xyz[i, 0], xyz[i, 1], xyz[i, 2] = x[i], y[i], z[i]
-        times[i] = np.int64(t[i]) + offset
-    return xyz, times
-
-
-@kernel
-def _write_points(moved, x, y, z):
-    """The columns of `moved` into the float32 fields (rounded to nearest, as NumPy)."""
-    for i in range(moved.shape[0]):
-        x[i], y[i], z[i] = moved[i, 0], moved[i, 1], moved[i, 2]
 
 
 @warm_up
 def compile_kernels() -> None:
     """The kernels compiled for the types a scan gives them: two points fired between
-    two poses a metre apart, out of firing order; a scan's fields read and written."""
+    two poses a metre apart, out of firing order, as an array and as a scan's fields."""
     poses = np.stack([np.eye(4), np.eye(4)])
     poses[1, 0, 3] = 1.0
     deskew(np.ones((2, 3)), np.array([7, 3]), np.array([0, 10]), poses, 5, np.eye(4))
     points = np.zeros(2, dtype=POINT_DTYPE)  # a scan's fields: strided views
-    xyz, _ = _read_points(points["x"], points["y"], points["z"], points["t"], np.int64(5))
-    _write_points(xyz, points["x"], points["y"], points["z"])
+    points["t"] = [7, 3]
+    deskew_scan(Scan(points, 3, 7, 7, True, 0, 0, "VLP-16", "strongest"), [0, 10], poses, 5)

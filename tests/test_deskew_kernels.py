@@ -1,5 +1,7 @@
-"""De-skew's compiled blend (`deskew._translate_and_blend`) gives the bits of the NumPy
-formulation it replaced, on the walled yard's sweep taken while driving and turning."""
+"""De-skew's compiled pass (`deskew._move_points`) gives the bits of its NumPy formulation
+(the rotations as sums of products, as the kernel writes them), and within rounding what
+NumPy's matrix products (BLAS) gave before it, on the walled yard's sweep taken while
+driving and turning."""
 
 from __future__ import annotations
 
@@ -13,8 +15,9 @@ from treetraits.pipeline.deskew import _blend, deskew, deskew_scan, scan_point_h
 from treetraits.pipeline.projection import scan_mid_time
 
 
-def numpy_deskew(points, point_times, sample_times, sample_poses, t_ref, T_base_lidar):
-    """`deskew` as NumPy computed it before its kernel (valid arguments, M >= 2)."""
+def numpy_deskew(points, point_times, sample_times, sample_poses, t_ref, T_base_lidar, rotate):
+    """`deskew` in NumPy (valid arguments, M >= 2): each interval's points rotated by
+    `rotate(p, R)`, moved and blended."""
     xyz = np.asarray(points, dtype=float).reshape(-1, 3)
     times = np.asarray(sample_times, dtype=np.int64)
     poses = np.asarray(sample_poses, dtype=float).reshape(-1, 4, 4)
@@ -34,14 +37,24 @@ def numpy_deskew(points, point_times, sample_times, sample_poses, t_ref, T_base_
             continue
         p = xyz[lo:hi]
         w = ((t[lo:hi] - times[j]) / float(times[j + 1] - times[j]))[:, None]
-        p0 = p @ a[j, :3, :3].T + a[j, :3, 3]
-        p1 = p @ a[j + 1, :3, :3].T + a[j + 1, :3, 3]
+        p0 = rotate(p, a[j, :3, :3]) + a[j, :3, 3]
+        p1 = rotate(p, a[j + 1, :3, :3]) + a[j + 1, :3, 3]
         out[lo:hi] = p0 + w * (p1 - p0)
     if order is not None:
         unsorted = np.empty_like(out)
         unsorted[order] = out
         out = unsorted
     return out
+
+
+def by_sums(p, r):
+    """p @ r.T as the kernel sums it: ((x r0 + y r1) + z r2), no fused multiply-add."""
+    return p[:, :1] * r[:, 0] + p[:, 1:2] * r[:, 1] + p[:, 2:] * r[:, 2]
+
+
+def by_blas(p, r):
+    """p @ r.T as BLAS computes it (its own order, fused multiply-adds where it has them)."""
+    return p @ r.T
 
 
 @pytest.mark.parametrize("arrangement", ["firing-order", "shuffled", "sparse-samples"])
@@ -54,18 +67,20 @@ def test_deskew_is_numpys_bit_for_bit(arrangement):
     if arrangement == "sparse-samples":  # intervals without points; points past the ends
         keep = [0, 1, 2, 6, 7, len(times) - 3]
         times, poses = times[keep], poses[keep]
-    args = (points, dt, times, poses, 1_000_000)
-    want = numpy_deskew(*args, T_BASE_LIDAR)
-    got = deskew(*args, T_BASE_LIDAR)
+    args = (points, dt, times, poses, 1_000_000, T_BASE_LIDAR)
+    want = numpy_deskew(*args, by_sums)
+    got = deskew(*args)
     assert np.abs(got - points).max() > 0.1  # the robot moved: there was work to do
     assert got.tobytes() == want.tobytes()
-    # A scan compiles nothing beyond the warm-up.
+    # Within rounding of the matrix products' result: the points are 3-40 m out.
+    assert np.abs(got - numpy_deskew(*args, by_blas)).max() < 1e-13
+    # A scan compiles nothing beyond the warm-up (an array's and a scan's fields' types).
     deskew_module.compile_kernels()
-    assert len(deskew_module._translate_and_blend.signatures) == 1
+    assert len(deskew_module._move_points.signatures) == 2
 
 
 def numpy_deskew_scan(scan, sample_times, sample_poses, t_ref, T_base_lidar):
-    """`deskew_scan` as NumPy read and wrote the fields before its kernels."""
+    """`deskew_scan` as NumPy reads the fields into an array for `deskew` and writes them."""
     points = take_points(scan.points, slice(None))
     xyz = np.empty((len(points), 3))
     xyz[:, 0], xyz[:, 1], xyz[:, 2] = points["x"], points["y"], points["z"]
@@ -101,5 +116,4 @@ def test_deskew_scan_reads_and_writes_the_fields_as_numpy(arrangement):
     assert moved > 0.05 if arrangement != "one-sample" else moved == 0
     assert scan.points.tobytes() == cloud.tobytes()  # the scan given is left as it was
     deskew_module.compile_kernels()
-    assert len(deskew_module._read_points.signatures) == 1
-    assert len(deskew_module._write_points.signatures) == 1
+    assert len(deskew_module._move_points.signatures) == 2
