@@ -86,3 +86,26 @@ def test_eval_stops_with_its_workers(tmp_path, signum, whole_group, code):
     name = signal.Signals(signum).name
     assert err.strip().splitlines()[-1] == f"treetraits: error: interrupted ({name})", err
     assert "Traceback" not in err
+
+
+def test_a_pool_stopped_by_an_exception_leaves_no_thread_behind():
+    """The pool's manager thread has ended (its wake-up pipe closed) when the exception
+    leaves `_stopped_on_exception`: at exit, concurrent.futures writes to that pipe without
+    a lock, and a close at the same moment printed an EBADF traceback after the one-line
+    error (seen once under load in this file's test above)."""
+    import threading
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    from treetraits.evaluation.run import _stopped_on_exception
+
+    before = set(threading.enumerate())
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"))
+    with pytest.raises(KeyboardInterrupt), _stopped_on_exception(pool):
+        running = pool.submit(time.sleep, 60)
+        deadline = time.monotonic() + 60
+        while not running.running() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert running.running()
+        raise KeyboardInterrupt
+    assert set(threading.enumerate()) == before

@@ -184,6 +184,7 @@ def _stopped_on_exception(pool: ProcessPoolExecutor) -> Iterator[ProcessPoolExec
         yield pool
     except BaseException:
         workers = list((getattr(pool, "_processes", None) or {}).values())
+        manager = getattr(pool, "_executor_manager_thread", None)  # shutdown forgets it
         pool.shutdown(wait=False, cancel_futures=True)
         for worker in workers:
             with contextlib.suppress(OSError):
@@ -194,6 +195,11 @@ def _stopped_on_exception(pool: ProcessPoolExecutor) -> Iterator[ProcessPoolExec
             if worker.is_alive():
                 worker.kill()
                 worker.join()
+        # The pool's manager thread, finding its workers gone, closes its wake-up pipe; at
+        # exit concurrent.futures writes to that pipe without a lock (CPython 3.11), and a
+        # close at the same moment printed an EBADF traceback after our last line.
+        if manager is not None:
+            manager.join(WORKER_STOP_S)
         raise
     pool.shutdown(wait=True)
 
