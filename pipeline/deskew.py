@@ -104,15 +104,16 @@ def _move_points(x, y, z, t, offset, times, a, out_x, out_y, out_z):
         w = np.float64(ti - times[j]) / np.float64(times[j + 1] - times[j])
         px, py, pz = np.float64(x[i]), np.float64(y[i]), np.float64(z[i])
         b, c = a[j], a[j + 1]
-        p0 = px * b[0, 0] + py * b[0, 1] + pz * b[0, 2] + b[0, 3]
-        p1 = px * c[0, 0] + py * c[0, 1] + pz * c[0, 2] + c[0, 3]
-        out_x[i] = p0 + w * (p1 - p0)
-        p0 = px * b[1, 0] + py * b[1, 1] + pz * b[1, 2] + b[1, 3]
-        p1 = px * c[1, 0] + py * c[1, 1] + pz * c[1, 2] + c[1, 3]
-        out_y[i] = p0 + w * (p1 - p0)
-        p0 = px * b[2, 0] + py * b[2, 1] + pz * b[2, 2] + b[2, 3]
-        p1 = px * c[2, 0] + py * c[2, 1] + pz * c[2, 2] + c[2, 3]
-        out_z[i] = p0 + w * (p1 - p0)
+        for r in range(3):  # unrolled by the compiler: the branches below go
+            p0 = px * b[r, 0] + py * b[r, 1] + pz * b[r, 2] + b[r, 3]
+            p1 = px * c[r, 0] + py * c[r, 1] + pz * c[r, 2] + c[r, 3]
+            moved = p0 + w * (p1 - p0)
+            if r == 0:
+                out_x[i] = moved
+            elif r == 1:
+                out_y[i] = moved
+            else:
+                out_z[i] = moved
 
 
 def _blend(poses: np.ndarray, times: np.ndarray, at: np.ndarray) -> np.ndarray:
