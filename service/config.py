@@ -143,6 +143,17 @@ class OutputConfig:
             check=_between(0.01, MAX_PERIOD_S),
         ),
     )
+    # Every export rewrites every tree: ~0.4 s of CPU at 50,000 trees here (docs/
+    # performance.md), ~3x that on a Xavier. The store holds every scan as it comes; the
+    # files are a view of it, and a view a few seconds older costs the scans nothing.
+    export_max_share: float = field(
+        default=0.02,
+        metadata=_key(
+            "exports take at most this share of the time: a slow one (a big survey) "
+            "waits longer than export_every_s for the next",
+            check=_between(0.001, 1.0),
+        ),
+    )
     # A stray cluster at the edge of view is seen once; at 10 Hz a real tree in range is
     # seen in dozens of scans.
     min_observations: int = field(

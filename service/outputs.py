@@ -4,7 +4,8 @@ scan, and `trees.geojson` / `trees.csv` (found and missing trees) and `rejected.
 
 `RunWriter` owns the store and knows how to turn the mapper's trees into georeferenced
 `Tree`s; when to export is the caller's choice (recorded time in a replay, wall time in
-the service). Failures to write come out as `OutputError` naming the file and the cause,
+the service, both held to `output.export_max_share` of the wall time by
+`next_export_after`). Failures to write come out as `OutputError` naming the file and the cause,
 with the store's transaction rolled back, so a full disk never leaves a half-written scan.
 """
 
@@ -44,6 +45,14 @@ GEOJSON_NAME = "trees.geojson"
 
 class OutputError(FileAccessError):
     """An output could not be written (disk full, I/O error); the file named is intact."""
+
+
+def next_export_after(finished: float, took_s: float, every_s: float, max_share: float) -> float:
+    """When the next export may start, on the clock `finished` is read from (seconds):
+    `every_s` after this one finished, or later when this one took so long (`took_s`)
+    that exports would take more than `max_share` of the time. An export rewrites every
+    tree, so its cost grows with the survey while the scans' does not."""
+    return finished + max(every_s, took_s * (1.0 / max_share - 1.0))
 
 
 class RunWriter:

@@ -45,7 +45,7 @@ from treetraits.errors import ConfigError, TreetraitsError
 from treetraits.service.config import ServiceConfig, dump_config
 from treetraits.service.health import assess, status_line
 from treetraits.service.notify import Notifier
-from treetraits.service.outputs import OutputError, RunWriter
+from treetraits.service.outputs import OutputError, RunWriter, next_export_after
 from treetraits.service.preflight import check_start
 from treetraits.service.survey_start import SurveyStart
 from treetraits.service.workers import (
@@ -320,7 +320,11 @@ class Service:
             now = time.monotonic()
             if self.writer is not None and now >= next_export:
                 self._export()
-                next_export = now + self.cfg.output.export_every_s
+                finished = time.monotonic()
+                out = self.cfg.output
+                next_export = next_export_after(
+                    finished, finished - now, out.export_every_s, out.export_max_share
+                )
             if now >= next_status:
                 self._report(now)
                 next_status = now + self.cfg.service.status_every_s

@@ -4,6 +4,7 @@ to its field-map entry, the outputs of the contract written, and the same output
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import sqlite3
@@ -89,6 +90,37 @@ def test_same_input_same_outputs(survey, tmp_path):
     second = run_replay(survey.recording, tmp_path / "b", ReplayOptions())
     assert first.trees == second.trees
     assert (tmp_path / "a" / "trees.csv").read_text() == (tmp_path / "b" / "trees.csv").read_text()
+
+
+def test_exports_are_held_to_their_share_and_change_no_output(survey, tmp_path, monkeypatch):
+    """An export after every scan (`export_every_s` 0.01) with the share unbounded, and with
+    a share so small that each export pushes the next one past the end: the second writes
+    far fewer, and the files, the store's trees and the report are the same."""
+    from treetraits.service.outputs import RunWriter
+
+    calls = []
+    export = RunWriter.export
+    monkeypatch.setattr(RunWriter, "export", lambda self: calls.append(1) or export(self))
+
+    def replay(name: str, share: float):
+        calls.clear()
+        output = dataclasses.replace(
+            ServiceConfig().output, export_every_s=0.01, export_max_share=share
+        )
+        config = dataclasses.replace(ServiceConfig(), output=output)
+        report = run_replay(survey.recording, tmp_path / name, ReplayOptions(config))
+        return report, len(calls)
+
+    every, every_count = replay("every", 1.0)
+    held, held_count = replay("held", 0.001)
+    assert every_count > 100  # an export after nearly every scan
+    assert held_count < every_count / 10
+    assert held.trees == every.trees and held.missing == every.missing
+    for name in ("trees.csv", "trees.geojson", "rejected.geojson"):
+        assert (tmp_path / "held" / name).read_bytes() == (tmp_path / "every" / name).read_bytes()
+    query = "SELECT * FROM trees ORDER BY tree_id"
+    stores = [sqlite3.connect(tmp_path / n / "traits.sqlite") for n in ("held", "every")]
+    assert stores[0].execute(query).fetchall() == stores[1].execute(query).fetchall()
 
 
 @pytest.mark.parametrize(("method", "traits"), [("paper", "robust"), ("rph-vlp16", "paper")])

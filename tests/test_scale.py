@@ -179,3 +179,16 @@ def test_missing_trees_taken_in_piece_by_piece_are_those_of_the_whole_path(tmp_p
     writer.close()
     assert seen_odom and processor.anchor is not None  # the path began in odom
     assert checked > 10 and seen_missing == 2
+
+
+def test_an_export_that_takes_longer_pushes_the_next_back():
+    """Exports rewrite every tree, so they cost more as a survey grows: the next one waits
+    until they take no more than `max_share` of the time, and never less than `every_s`."""
+    from treetraits.service.outputs import next_export_after
+
+    assert next_export_after(100.0, 0.01, 5.0, 0.02) == 105.0  # 0.01 s: the period rules
+    # 0.4 s (50,000 trees here): 19.6 s after it, so 0.4 of every 20 s.
+    later = next_export_after(100.0, 0.4, 5.0, 0.02)
+    assert later == pytest.approx(119.6)
+    assert 0.4 / (later - 100.0 + 0.4) == pytest.approx(0.02)
+    assert next_export_after(100.0, 3.0, 5.0, 1.0) == 105.0  # a share of 1: the period only

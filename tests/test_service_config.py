@@ -69,6 +69,7 @@ def test_a_partial_file_keeps_the_other_defaults(tmp_path):
         ("[lidar]\nrcvbuf_bytes = 4294967296\n", "lidar.rcvbuf_bytes must be in [1, 2147483647]"),
         ("[output]\nexport_every_s = 1e12\n", "output.export_every_s must be in [0.01, 3600]"),
         ("[output]\nmatch_gate_m = 5000.0\n", "output.match_gate_m must be in [0.01, 100]"),
+        ("[output]\nexport_max_share = 0\n", "output.export_max_share must be in [0.001, 1]"),
         ("[record]\nmax_file_mb = 9999999999\n", "record.max_file_mb must be in [1, 1048576]"),
         ("[gnss]\nsilence_s = nan\n", "gnss.silence_s must be a finite number"),
         ("[wheels]\nkind = 'tractor'\n", "wheels.kind must be one of jackal, bridge"),
