@@ -152,6 +152,10 @@ class Pose:
     pitch: float = 0.0
 
 
+# libjpeg's warning when the data ends before the image (JWRN_JPEG_EOF).
+_CUT_SHORT = "Premature end of JPEG file"
+
+
 @dataclass(frozen=True, slots=True)
 class Frame:
     """One camera image: the JPEG bytes as the camera sent them, decoded only on demand.
@@ -166,29 +170,38 @@ class Frame:
     sequence: int = 0
 
     def decode(self, reduction: int = 1) -> np.ndarray:
-        """The image as an OpenCV BGR uint8 array. Raises ParseError for a corrupt JPEG.
+        """The image as an OpenCV BGR uint8 array. Raises ParseError for a JPEG that is not
+        one or whose data ends before the image does.
 
         `reduction` 2, 4 or 8: decoded at 1/2, 1/4 or 1/8 of the size (ceil(W / r) x
         ceil(H / r)), each pixel about the mean of the r x r pixels it stands for; the JPEG
-        decoder scales in its inverse DCT, so this is cheaper than decoding and resizing."""
-        import cv2
+        decoder scales in its inverse DCT, so this is cheaper than decoding and resizing.
+
+        libjpeg-turbo through simplejpeg: the same pixels as OpenCV's `imdecode` (its
+        libjpeg-turbo, the same accurate DCT and smooth chroma upsampling; a test holds them
+        equal), a third less time at half size (1.67 against 2.45 ms a 720p frame here).
+        Damage is taken as `imdecode` takes it: a frame cut short (the decoder runs out of
+        data: its lower rows would be filler) is refused, other damage the decoder recovers
+        from (a flipped bit, a frame cut and closed) is decoded."""
+        import simplejpeg
 
         from treetraits.errors import ParseError
 
-        flags = {
-            1: cv2.IMREAD_COLOR,
-            2: cv2.IMREAD_REDUCED_COLOR_2,
-            4: cv2.IMREAD_REDUCED_COLOR_4,
-            8: cv2.IMREAD_REDUCED_COLOR_8,
-        }
-        if reduction not in flags:
+        if reduction not in (1, 2, 4, 8):
             raise ValueError(f"reduction must be 1, 2, 4 or 8, got {reduction}")
-        image = cv2.imdecode(np.frombuffer(self.jpeg, dtype=np.uint8), flags[reduction])
-        if image is None:
+        try:
+            height, width, _, _ = simplejpeg.decode_jpeg_header(self.jpeg)
+            size = {"min_height": -(-height // reduction), "min_width": -(-width // reduction)}
+            try:  # strict: any warning stops it, so intact frames are decoded once
+                return simplejpeg.decode_jpeg(self.jpeg, "BGR", **size)
+            except ValueError as exc:
+                if _CUT_SHORT in str(exc):
+                    raise
+                return simplejpeg.decode_jpeg(self.jpeg, "BGR", strict=False, **size)
+        except ValueError as exc:
             raise ParseError(
-                f"frame {self.sequence}: not a decodable JPEG ({len(self.jpeg)} bytes)"
-            )
-        return image
+                f"frame {self.sequence}: not a decodable JPEG ({len(self.jpeg)} bytes: {exc})"
+            ) from exc
 
 
 @dataclass(frozen=True, slots=True)

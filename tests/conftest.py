@@ -83,15 +83,21 @@ def capture(request) -> str:
 
 @pytest.fixture
 def decode_calls(monkeypatch):
-    """Counts every cv2.imdecode call in the process (the real one still runs)."""
+    """Counts every JPEG decode in the process, OpenCV's (`cv2.imdecode`) and the frames'
+    (`simplejpeg.decode_jpeg`, `Frame.decode`); the real ones still run."""
+    import simplejpeg
+
     calls = []
-    real = cv2.imdecode
 
-    def counting(*args, **kwargs):
-        calls.append(1)
-        return real(*args, **kwargs)
+    def counting(real):
+        def decode(*args, **kwargs):
+            calls.append(1)
+            return real(*args, **kwargs)
 
-    monkeypatch.setattr(cv2, "imdecode", counting)
+        return decode
+
+    monkeypatch.setattr(cv2, "imdecode", counting(cv2.imdecode))
+    monkeypatch.setattr(simplejpeg, "decode_jpeg", counting(simplejpeg.decode_jpeg))
     return calls
 
 

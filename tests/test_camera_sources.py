@@ -265,6 +265,8 @@ def test_ring_frame_near_decodes_nothing_and_counts(decode_calls):
     # frame 3 had been handed out: overwritten but not dropped
     assert (stats.overwritten, stats.dropped) == (4, 3)
     assert decode_calls == []
+    frames[3].decode(2)  # what the counter sees: a frame's decode
+    assert len(decode_calls) == 1
 
 
 def test_replay_frame_near_reads_forward_as_scans_ask(tmp_path, decode_calls):

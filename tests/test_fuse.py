@@ -17,6 +17,7 @@ from treetraits.drivers import recording
 from treetraits.drivers.calibration import load_calibration
 from treetraits.drivers.records import Frame
 from treetraits.drivers.velodyne.sources import open_source
+from treetraits.errors import ParseError
 from treetraits.pipeline.fusion import FusionConfig, colorize_ndvi, fuse_scan
 from treetraits.pipeline.ndvi import ndvi_image
 from treetraits.pipeline.projection import PointStatus, max_valid_radius, scan_mid_time
@@ -267,6 +268,57 @@ def test_a_half_size_decode_keeps_every_status_and_reads_the_covering_pixel(scan
     assert wrong.reason == "size_mismatch" and "1/2 size" in wrong.detail
     with pytest.raises(ValueError, match="keep_ndvi_frame"):
         fuse_scan(scan, [frame], calibration, reduction=2)
+
+
+# Chroma subsampling 4:4:4, 4:2:2 and 4:2:0 (OpenCV's flags), and a size no reduction
+# divides, as another camera or video mode may send them.
+SAMPLINGS = (
+    cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444,
+    cv2.IMWRITE_JPEG_SAMPLING_FACTOR_422,
+    cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420,
+)
+
+
+def test_frames_decode_to_opencvs_pixels_and_damage_as_opencv_takes_it(frames):
+    """`Frame.decode` (libjpeg-turbo through simplejpeg) gives `cv2.imdecode`'s pixels at
+    every reduction; a frame cut short is refused as imdecode refuses it, one with flipped
+    bits decoded as imdecode decodes it."""
+    flags = {
+        1: cv2.IMREAD_COLOR,
+        2: cv2.IMREAD_REDUCED_COLOR_2,
+        4: cv2.IMREAD_REDUCED_COLOR_4,
+        8: cv2.IMREAD_REDUCED_COLOR_8,
+    }
+    picture = cv2.imdecode(np.frombuffer(frames[0].jpeg, np.uint8), cv2.IMREAD_COLOR)
+    odd = cv2.resize(picture, (1283, 717))
+    jpegs = [f.jpeg for f in frames[:4]]
+    for sampling in SAMPLINGS:
+        params = [cv2.IMWRITE_JPEG_QUALITY, 90, cv2.IMWRITE_JPEG_SAMPLING_FACTOR, sampling]
+        jpegs.append(cv2.imencode(".jpg", odd, params)[1].tobytes())
+    jpegs.append(cv2.imencode(".jpg", cv2.cvtColor(odd, cv2.COLOR_BGR2GRAY))[1].tobytes())
+    rng = np.random.default_rng(0)
+    flipped = 0
+    for jpeg in jpegs:
+        damaged = bytearray(jpeg)
+        for at in rng.integers(len(jpeg) // 2, len(jpeg) - 2, 4):
+            damaged[at] ^= 1 << int(rng.integers(8))
+        for reduction, flag in flags.items():
+            expected = cv2.imdecode(np.frombuffer(jpeg, np.uint8), flag)
+            decoded = Frame(jpeg, 0, 0).decode(reduction)
+            assert decoded.dtype == np.uint8 and decoded.shape == expected.shape
+            np.testing.assert_array_equal(decoded, expected)
+            with pytest.raises(ParseError, match="not a decodable JPEG"):
+                Frame(jpeg[: len(jpeg) * 2 // 3], 0, 0).decode(reduction)
+            assert cv2.imdecode(np.frombuffer(jpeg[: len(jpeg) * 2 // 3], np.uint8), flag) is None
+            expected = cv2.imdecode(np.frombuffer(bytes(damaged), np.uint8), flag)
+            if expected is not None:
+                flipped += 1
+                np.testing.assert_array_equal(
+                    Frame(bytes(damaged), 0, 0).decode(reduction), expected
+                )
+    assert flipped >= 8  # most damaged frames still decode (imdecode's way)
+    with pytest.raises(ValueError, match="reduction"):
+        frames[0].decode(3)
 
 
 def test_help():
