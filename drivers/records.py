@@ -179,7 +179,8 @@ class Frame:
 
         libjpeg-turbo through simplejpeg: the same pixels as OpenCV's `imdecode` (its
         libjpeg-turbo, the same accurate DCT and smooth chroma upsampling; a test holds them
-        equal), a third less time at half size (1.67 against 2.45 ms a 720p frame here).
+        equal) in less time: a 720p frame at half size 1.67 against 2.45 ms decoded alone
+        here, 1.6-1.75 against 1.7-2.1 ms inside a replay (docs/performance.md, round 9).
         Damage is taken as `imdecode` takes it: a frame cut short (the decoder runs out of
         data: its lower rows would be filler) is refused, other damage the decoder recovers
         from (a flipped bit, a frame cut and closed) is decoded."""

@@ -5,8 +5,9 @@ scan, and `trees.geojson` / `trees.csv` (found and missing trees) and `rejected.
 `RunWriter` owns the store and knows how to turn the mapper's trees into georeferenced
 `Tree`s; when to export is the caller's choice (recorded time in a replay, wall time in
 the service, both held to `output.export_max_share` of the wall time by
-`next_export_after`). Failures to write come out as `OutputError` naming the file and the cause,
-with the store's transaction rolled back, so a full disk never leaves a half-written scan.
+`next_export_after`). Failures to write come out as `OutputError` naming the file and the
+cause, with the store's transaction rolled back, so a full disk never leaves a
+half-written scan.
 """
 
 from __future__ import annotations
