@@ -94,6 +94,7 @@ def _move_points(x, y, z, t, offset, times, a, out_x, out_y, out_z):
     BLAS, so every machine gives the same bits; one pass without temporaries, the
     interval found by a walk (a scan comes in firing order)."""
     last = times.shape[0] - 1
+    outputs = (out_x, out_y, out_z)
     j = 0
     for i in range(x.shape[0]):
         ti = min(max(np.int64(t[i]) + offset, times[0]), times[last])
@@ -104,16 +105,10 @@ def _move_points(x, y, z, t, offset, times, a, out_x, out_y, out_z):
         w = np.float64(ti - times[j]) / np.float64(times[j + 1] - times[j])
         px, py, pz = np.float64(x[i]), np.float64(y[i]), np.float64(z[i])
         b, c = a[j], a[j + 1]
-        for r in range(3):  # unrolled by the compiler: the branches below go
+        for r in range(3):
             p0 = px * b[r, 0] + py * b[r, 1] + pz * b[r, 2] + b[r, 3]
             p1 = px * c[r, 0] + py * c[r, 1] + pz * c[r, 2] + c[r, 3]
-            moved = p0 + w * (p1 - p0)
-            if r == 0:
-                out_x[i] = moved
-            elif r == 1:
-                out_y[i] = moved
-            else:
-                out_z[i] = moved
+            outputs[r][i] = p0 + w * (p1 - p0)
 
 
 def _blend(poses: np.ndarray, times: np.ndarray, at: np.ndarray) -> np.ndarray:
