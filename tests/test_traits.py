@@ -49,6 +49,45 @@ def test_slice_width_measures_within_slices_only():
     assert slice_width(np.zeros((1, 3))) == 0.0
 
 
+def every_slice_width(points, slices, floor):
+    """slice_width without its bounds: every slice of two points or more measured (the
+    farthest pair, 3D, among its x-y hull's vertices)."""
+    import cv2
+
+    z = points[:, 2]
+    span = max(float(z.max()) - float(z.min()), 1e-9)
+    index = np.minimum(((z - z.min()) * (slices / span)).astype(np.int64), slices - 1)
+    best = floor * floor
+    for k in range(slices):
+        members = points[index == k]
+        if len(members) < 2:
+            continue
+        hull = cv2.convexHull(members[:, :2].astype(np.float32), returnPoints=False)
+        vertices = members[hull.ravel()]
+        gaps = vertices[:, None, :] - vertices[None, :, :]
+        best = max(best, float(np.einsum("ijk,ijk->ij", gaps, gaps).max()))
+    return math.sqrt(best)
+
+
+def test_slice_width_skips_only_slices_that_cannot_win():
+    """The bounds decide which slices are measured, never the answer: the same width as
+    measuring every slice, on crowns of every size, with and without a kept maximum, and
+    on sets where slices hold one point or stand on one spot."""
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        n = int(rng.integers(2, 1500))
+        points = rng.normal(size=(n, 3)) * rng.uniform(0.05, 2.0, size=3)
+        if trial % 4 == 1:
+            points[:, :2] = 0.25  # a column: every slice's extent is nil
+        if trial % 4 == 2:
+            points[:, 2] = np.round(points[:, 2], 1)  # points on slice edges
+        truth = every_slice_width(points, 10, 0.0)
+        assert slice_width(points, 10) == truth
+        for floor in (0.5 * truth, truth, 1.5 * truth):
+            assert slice_width(points, 10, floor) == every_slice_width(points, 10, floor)
+        assert slice_width(points, 3) == every_slice_width(points, 3, 0.0)
+
+
 def test_height_is_registered_when_the_top_ring_changes_and_the_maximum_kept():
     traits = PaperTraits(CONFIG)
     cloud = ring(1.0, 1.0)

@@ -1,6 +1,8 @@
 """The outline's compiled steps (`traits._scan_cells`, `traits._merged_cells`) give the
 bits of the NumPy formulation they replaced, on the clusters the mapper hands each tree's
-outline on the twin drive past the 2 x 3 grid, and compile nothing beyond the warm-up."""
+outline on the twin drive past the 2 x 3 grid, and compile nothing beyond the warm-up;
+the paper's width (`slice_width`, its bounds compiled) is that of every slice measured
+on the same clusters."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ import pytest
 
 from tests.kernel_checks import assert_warm_ups_cover
 from tests.test_mapper import map_twin_drive_watching
+from tests.test_traits import every_slice_width
 from treetraits.drivers.records import row_items
 from treetraits.pipeline import traits as traits_module
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
@@ -21,6 +24,7 @@ from treetraits.pipeline.traits import (
     _scan_cells,
     _unique_cells,
     _voxel_keys,
+    slice_width,
 )
 
 CONFIG = TraitsConfig(method="robust")
@@ -197,3 +201,24 @@ def test_outlines_compile_nothing_beyond_the_warm_up():
             outline.centre()
 
     assert_warm_ups_cover(kernels, (traits_module.compile_kernels,), run)
+
+
+def test_slice_width_of_the_twin_clusters_is_every_slice_measured():
+    """The bounds skip slices only where they cannot win: on each cluster alone, and as
+    the paper's traits call it scan after scan, with the width kept so far as the floor."""
+    for clusters in outline_inputs():
+        kept = 0.0
+        for points in clusters:
+            alone = every_slice_width(points, 10, 0.0)
+            assert slice_width(points, 10) == alone
+            assert slice_width(points, 10, kept) == every_slice_width(points, 10, kept)
+            kept = max(kept, alone)
+
+
+def test_slice_width_compiles_nothing_beyond_the_warm_up():
+    def run() -> None:  # float32 and reversed: the layouts callers may pass
+        for points in outline_inputs()[0]:
+            slice_width(points.astype(np.float32)[::-1], 10)
+            slice_width(points, 10, 0.5)
+
+    assert_warm_ups_cover((traits_module._slice_bounds,), (traits_module.compile_kernels,), run)
