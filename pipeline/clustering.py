@@ -242,7 +242,13 @@ def nearest_label(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray) -
 
 
 def kernel_layout(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
-    """The one layout the kernels are compiled for (numba compiles anew for each)."""
+    """The one layout the kernels are compiled for (numba compiles anew for each). An
+    array already in it is returned as np.require would, without its ~1.5 us of checks
+    (a scan asks ~80 times)."""
+    if isinstance(array, np.ndarray):
+        flags = array.flags
+        if flags.c_contiguous and flags.writeable and array.dtype == dtype:
+            return array
     return np.require(array, dtype, ["C", "W"])
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from treetraits.jit import kernel
+from treetraits.pipeline.clustering import kernel_layout
 
 _LOAD_PIPELINE = """
 from treetraits import jit
@@ -54,6 +55,21 @@ def test_a_kernel_without_a_cache_location_is_compiled_in_memory():
     source = "@kernel\ndef total(a):\n    s = 0\n    for x in a:\n        s += x\n    return s\n"
     exec(compile(source, "<typed at a prompt>", "exec"), namespace)  # no file: no cache
     assert namespace["total"](np.arange(10)) == 45
+
+
+def test_kernel_layout_is_c_ordered_writable_and_of_the_type_asked():
+    """An array in the kernels' layout is passed on as it is (no copy); any other is
+    copied into it, as np.require copies."""
+    ready = np.arange(12.0).reshape(4, 3)
+    assert kernel_layout(ready) is ready
+    assert kernel_layout(np.arange(4), np.int64).dtype == np.int64
+    frozen = ready.copy()
+    frozen.flags.writeable = False
+    for other in (ready[::-1], ready.T, ready.astype(np.float32), frozen, ready.tolist()):
+        laid = kernel_layout(other)
+        assert laid.flags.c_contiguous and laid.flags.writeable and laid.dtype == np.float64
+        assert np.array_equal(laid, np.asarray(other, dtype=float))
+        assert laid is not other
 
 
 _SERVICE_WARM_UP = """
