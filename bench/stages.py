@@ -14,6 +14,10 @@ recording, GNSS and wheel decoding, the scan's bookkeeping.
 The imports are paid before the clock starts (a warm run, as bench/replay.py's).
 
     .venv/bin/python bench/stages.py [--cache DIR] [--cpu N] [--traits paper|robust]
+                                     [--recording FILE.mcap]
+
+`--recording` breaks down another recording instead (a field drive with many trees in
+view, where the per-tree stages weigh more than on the demo's six trees).
 """
 
 from __future__ import annotations
@@ -123,17 +127,23 @@ def main() -> None:
     )
     parser.add_argument("--cpu", type=int, help="the CPU to pin to (default: the first allowed)")
     parser.add_argument("--traits", choices=("paper", "robust"), default="paper")
+    parser.add_argument(
+        "--recording", type=Path, help="a recording to break down (default: the demo survey)"
+    )
     args = parser.parse_args()
     cpu = args.cpu if args.cpu is not None else min(os.sched_getaffinity(0))
     os.sched_setaffinity(0, {cpu})
-    recording = demo_recording(args.cache)
+    recording = args.recording or demo_recording(args.cache)
+    if not recording.is_file():
+        parser.error(f"{recording}: no such recording")
     spent, laps, total, scans = run(recording, args.traits)
 
     def line(row: str, seconds: float, depth: int) -> None:
         label = "  " * depth + row
         print(f"| {label} | {seconds / scans * 1e3:.2f} | {seconds / total:.0%} |")
 
-    print(f"demo survey, {scans} scans, CPU {cpu}, traits {args.traits}: {total:.2f} s of CPU")
+    name = "demo survey" if args.recording is None else recording.name
+    print(f"{name}, {scans} scans, CPU {cpu}, traits {args.traits}: {total:.2f} s of CPU")
     print("| stage | CPU ms per scan | share |")
     print("|---|---|---|")
     top = 0.0
