@@ -85,7 +85,8 @@ def _slice_bounds(
     top = np.full((slices, bearings), -np.inf)
     bottom = np.full((slices, bearings), np.inf)
     for i in range(n):
-        k = min(np.int64((points[i, 2] - low) * step), slices - 1)
+        # Clamped both ways: a NaN height (none reaches here) must not index outside.
+        k = max(min(np.int64((points[i, 2] - low) * step), slices - 1), 0)
         index[i] = k
         counts[k] += 1
         for b in range(bearings):
