@@ -60,7 +60,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from replay import demo_recording, input_once, replay_once  # noqa: E402
 
 MEASURED = "measured_replays"
-WORK = "work"
+# The rows, and whether each is work a compiled pipeline would still do.
+INTERPRETER = "interpreter and runtimes (CPython, numba's dispatch)"
+NUMPY_CALLS = "NumPy's call machinery"
+LIBC = "libc (malloc, free, memcpy)"
+KERNELS = "work: compiled kernels (numba)"
+NUMPY_WORK = "work: NumPy loops, copies, sorts"
+JPEG = "work: JPEG decode"
+OTHER_WORK = "work: SciPy, BLAS, libm and the rest"
+IO_WORK = "work: zstd, SQLite, file I/O"
+CATEGORIES = (
+    (INTERPRETER, False),
+    (NUMPY_CALLS, False),
+    (LIBC, False),
+    (KERNELS, True),
+    (NUMPY_WORK, True),
+    (JPEG, True),
+    (OTHER_WORK, True),
+    (IO_WORK, True),
+)
 # NumPy's own functions that move or compute data (the rest of its C is call machinery).
 _NUMPY_DATA = re.compile(
     r"mapiter|Nonzero|TransferNDim|CopyAsFlat|AssignArray|boolean_subscript|sort|partition"
@@ -71,16 +89,6 @@ _NUMPY_DATA = re.compile(
 # Cython's argument parsing; numba's dispatch and runtime (its kernels have no file).
 _RUNTIME_C = re.compile(r"\.(c|h|cpp)(\.h)?:\d+\)$|numba/|_dispatcher")
 _FILE_IO = {"read", "write", "pread64", "pwrite64", "fsync", "fdatasync", "lseek", "openat"}
-CATEGORIES = (
-    ("interpreter and runtimes (CPython, numba's dispatch)", False),
-    ("NumPy's call machinery", False),
-    ("libc (malloc, free, memcpy)", False),
-    ("work: compiled kernels (numba)", True),
-    ("work: NumPy loops, copies, sorts", True),
-    ("work: JPEG decode", True),
-    ("work: SciPy, BLAS, libm and the rest", True),
-    ("work: zstd, SQLite, file I/O", True),
-)
 
 
 def category(leaf: str) -> str:
@@ -88,25 +96,20 @@ def category(leaf: str) -> str:
     `function (file:line)`) counts in. Where a frame could go either way it goes to the
     overheads: that makes the floor lower, the best replay faster than it would be."""
     name, _, where = leaf.partition(" (")
-    if ".py" in where or where.startswith("<") or "libpython" in where:
-        return CATEGORIES[0][0]
-    if _RUNTIME_C.search(where):
-        return CATEGORIES[0][0]
+    python = ".py" in where or where.startswith("<") or "libpython" in where
+    if python or _RUNTIME_C.search(where):
+        return INTERPRETER
     if "jpeg" in leaf.lower():
-        return "work: JPEG decode"
+        return JPEG
     if where.startswith("?"):  # code with no file: numba's compiled kernels
-        return "work: compiled kernels (numba)"
+        return KERNELS
     if "_multiarray_umath" in where or "/numpy/" in where:
-        if _NUMPY_DATA.search(name):
-            return "work: NumPy loops, copies, sorts"
-        return "NumPy's call machinery"
+        return NUMPY_WORK if _NUMPY_DATA.search(name) else NUMPY_CALLS
     if "libc.so" in where or "ld-linux" in where:
-        if name in _FILE_IO:
-            return "work: zstd, SQLite, file I/O"
-        return "libc (malloc, free, memcpy)"
+        return IO_WORK if name in _FILE_IO else LIBC
     if "zstd" in leaf.lower() or "sqlite" in leaf.lower():
-        return "work: zstd, SQLite, file I/O"
-    return "work: SciPy, BLAS, libm and the rest"
+        return IO_WORK
+    return OTHER_WORK
 
 
 def shares(raw: Path) -> tuple[Counter, int]:
