@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # `tests` for --sweep, when run as a script
 
 from treetraits.drivers.calibration import load_calibration  # noqa: E402
-from treetraits.drivers.records import Frame, Pose, Scan  # noqa: E402
+from treetraits.drivers.records import Frame, Scan  # noqa: E402
 from treetraits.drivers.velodyne.batcher import ScanBatcher  # noqa: E402
 from treetraits.pipeline.config import (  # noqa: E402
     ClusterConfig,
@@ -47,6 +47,7 @@ from treetraits.pipeline.config import (  # noqa: E402
     TrackingConfig,
     TraitsConfig,
 )
+from treetraits.pipeline.localization.pose import Pose  # noqa: E402
 from treetraits.pipeline.mapper import TreeMapper  # noqa: E402
 from treetraits.sim.camera import Survey3Emulator  # noqa: E402
 from treetraits.sim.lidar import Scene, Vlp16Emulator  # noqa: E402

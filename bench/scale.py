@@ -173,7 +173,7 @@ class Orchard:
         return self._trees[key]
 
     def pose(self, scan: int, t: int):
-        from treetraits.drivers.records import Pose
+        from treetraits.pipeline.localization.pose import Pose
 
         x, y, yaw = self.robot(scan)
         return Pose(

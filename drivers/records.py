@@ -1,7 +1,9 @@
-"""Records that cross module boundaries (docs/architecture.md, Data that crosses module boundaries).
+"""The sensors' records, made by the drivers and read by every layer above
+(docs/architecture.md, Data that crosses module boundaries). The pose is localisation's
+(`pipeline/localization/pose.py`), the output tree the outputs' (`pipeline/trees.py`).
 
-Defined once here and used everywhere. Bulk points are NumPy structured arrays with
-`POINT_DTYPE`; everything else is a frozen dataclass.
+Bulk points are NumPy structured arrays with `POINT_DTYPE`; everything else is a frozen
+dataclass.
 """
 
 from __future__ import annotations
@@ -131,27 +133,6 @@ class WheelSample:
     right_velocity: float | None = None
 
 
-@dataclass(frozen=True, slots=True)
-class Pose:
-    """x, y (, z), yaw (, roll, pitch) of `base_link` in `frame` at `t` (ns since the epoch).
-
-    yaw: radians, counter-clockwise from the frame's x axis (east in `utm`). roll and pitch
-    (radians, REP-103): roll about the robot's x (forward; positive = left side up), pitch
-    about its y (left; positive = nose down), applied as R = Rz(yaw) Ry(pitch) Rx(roll);
-    0 where no IMU gives them. `covariance` is the 3x3 covariance of (x, y, yaw).
-    """
-
-    t: int
-    x: float
-    y: float
-    yaw: float
-    covariance: np.ndarray
-    frame: str
-    z: float = 0.0
-    roll: float = 0.0
-    pitch: float = 0.0
-
-
 # libjpeg's warning when the data ends before the image (JWRN_JPEG_EOF).
 _CUT_SHORT = "Premature end of JPEG file"
 
@@ -203,41 +184,3 @@ class Frame:
             raise ParseError(
                 f"frame {self.sequence}: not a decodable JPEG ({len(self.jpeg)} bytes: {exc})"
             ) from exc
-
-
-@dataclass(frozen=True, slots=True)
-class Tree:
-    """One mapped tree, as written to the outputs (trees.csv columns, docs/architecture.md).
-
-    Position in the UTM zone of the run (`utm_zone` like `11N`) and in WGS84; None while
-    the tree is only known in `odom` (seen before the first GNSS fix or in an outage).
-    Times are ns since the Unix epoch.
-
-    `status`: "found" (detected), "missing" (a field-map tree the robot passed within
-    sensing range and did not find: its position is the map's, `tree_id` is empty, its
-    traits NaN, no times) or "rejected" (an object seen as often as a tree that is not
-    one: `reason` says why, see `pipeline.classify.REASONS`).
-
-    `height_top_seen`: whether the LiDAR's beams passed over the crown's top in some scan
-    (the height is then the top's); False: the crown went on above the top beam in every
-    scan and `height_m` is a lower bound; None where nobody judged it (a missing tree,
-    the baselines).
-    """
-
-    tree_id: str
-    easting: float | None
-    northing: float | None
-    utm_zone: str | None
-    lat: float | None
-    lon: float | None
-    width_m: float
-    height_m: float
-    ndvi: float | None
-    observations: int
-    first_seen: int | None
-    last_seen: int | None
-    field_id: str | None = None
-    row: str | None = None
-    status: str = "found"
-    reason: str | None = None
-    height_top_seen: bool | None = None

@@ -30,10 +30,10 @@ from typing import Any, Protocol, TextIO
 
 import numpy as np
 
-from treetraits.drivers.records import Tree
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.localization.utm import UtmGrid
+from treetraits.pipeline.trees import Tree
 
 DEFAULT_GATE_M = 1.5
 FEATURES_PER_WRITE = 1000  # GeoJSON features joined per write (~0.5 MB of text)

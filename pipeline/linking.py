@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from treetraits.drivers.records import Tree
+from treetraits.pipeline.trees import Tree
 
 # Half of the closest in-row spacing the project models (hedgerows, 2.5 m) less a margin:
 # two surveys' positions of one tree differ by the GNSS error (RTK: cm; DGPS: ~0.5 m)

@@ -14,13 +14,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from treetraits.drivers.calibration import Calibration
-from treetraits.drivers.records import Frame, Pose, Scan, take_points
+from treetraits.drivers.records import Frame, Scan, take_points
 from treetraits.jit import kernel, warm_up
 from treetraits.pipeline.classify import FLOATING, LOW, TREE, Votes
 from treetraits.pipeline.clustering import kernel_layout
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
+from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
 from treetraits.pipeline.tracking import Motion, Tracker, motion_transform

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from treetraits.drivers.records import Tree
 from treetraits.errors import FileAccessError
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
@@ -34,6 +33,7 @@ from treetraits.pipeline.georef import (
     write_trees_geojson,
 )
 from treetraits.pipeline.mapper import TreeMapper
+from treetraits.pipeline.trees import Tree
 from treetraits.service.config import OutputConfig
 from treetraits.service.store import Observation, TraitStore
 from treetraits.service.survey import ScanOutcome, SurveyProcessor

@@ -21,11 +21,11 @@ from pathlib import Path
 from treetraits import __version__
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration, load_calibration
-from treetraits.drivers.records import Tree
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
 from treetraits.pipeline.fieldmap import load_field_map, parse_geojson
 from treetraits.pipeline.georef import iso_utc
+from treetraits.pipeline.trees import Tree
 from treetraits.service.config import ServiceConfig
 from treetraits.service.outputs import (
     CSV_NAME,
@@ -35,7 +35,7 @@ from treetraits.service.outputs import (
     RunWriter,
     next_export_after,
 )
-from treetraits.service.survey import SurveyProcessor
+from treetraits.service.survey import make_processor
 
 
 @dataclass(frozen=True)
@@ -201,26 +201,6 @@ def nmea_log_messages(
             yield rec.GNSS_NMEA, raw, placed + latency, placed
 
     return messages()
-
-
-def make_mapper(config: ServiceConfig, calibration: Calibration):
-    """The mapper of `pipeline.method`, with the config's settings."""
-    method = config.pipeline.method
-    if method.startswith("rph"):
-        from treetraits.pipeline.rph import RphMapper, rph_config
-
-        preset = "vlp16" if method == "rph-vlp16" else "shipped"
-        return RphMapper(rph_config(preset), calibration=calibration)
-    from treetraits.pipeline.mapper import TreeMapper
-
-    return TreeMapper(config.mapper(), calibration)
-
-
-def make_processor(config: ServiceConfig, calibration: Calibration, lidar_model: str = "auto"):
-    """The processing core shared by replay and the live service."""
-    return SurveyProcessor(
-        make_mapper(config, calibration), calibration, config.localization, lidar_model
-    )
 
 
 @dataclass(frozen=True)

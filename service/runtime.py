@@ -195,7 +195,7 @@ class Service:
         return BoundedQueue(name, capacity, self._wake)
 
     def _open_recorder(self, calibration: Calibration, field_map: bytes | None) -> None:
-        from treetraits.drivers.rotation import RotatingRecorder
+        from treetraits.drivers.recording.rotation import RotatingRecorder
 
         path = self.record_path
         if path is None:
@@ -266,7 +266,7 @@ class Service:
                 worker.play_video(start_ns)
 
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
-        from treetraits.service.replay import make_processor
+        from treetraits.service.survey import make_processor
 
         self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
         # Before READY: the first scans would otherwise wait ~1-2 s for the imports (and

@@ -39,7 +39,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -48,9 +48,9 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.epochs import NS_PER_DAY, EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
-from treetraits.drivers.motion import OdometryIntegrator, decode_imu
-from treetraits.drivers.points import decode_points
-from treetraits.drivers.records import Fix, Frame, Pose, Scan, WheelSample
+from treetraits.drivers.recording.motion import OdometryIntegrator, decode_imu
+from treetraits.drivers.recording.points import decode_points
+from treetraits.drivers.records import Fix, Frame, Scan, WheelSample
 from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.drivers.velodyne.telemetry import decode_telemetry
 from treetraits.errors import ParseError
@@ -62,9 +62,13 @@ from treetraits.pipeline.localization import LocalizationConfig, Localizer
 from treetraits.pipeline.localization.attitude import AttitudeFilter, rotation_zyx
 from treetraits.pipeline.localization.lidar_clock import LidarUtcClock
 from treetraits.pipeline.localization.localizer import WHEELS_GONE_NS
+from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.localization.serial_clock import SerialClock
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
+
+if TYPE_CHECKING:
+    from treetraits.service.config import ServiceConfig
 
 # The longest a scan waits past its middle (by the newest message) for a settled pose
 # and its frame: the wheels or the receiver gone, a camera running late. Past the serial
@@ -446,3 +450,23 @@ class SurveyProcessor:
             self.stats.scans += 1
             out.append(ScanOutcome(scan, pose, frame, result))
         return out
+
+
+def make_mapper(config: ServiceConfig, calibration: Calibration):
+    """The mapper of `pipeline.method`, with the config's settings."""
+    method = config.pipeline.method
+    if method.startswith("rph"):
+        from treetraits.pipeline.rph import RphMapper, rph_config
+
+        preset = "vlp16" if method == "rph-vlp16" else "shipped"
+        return RphMapper(rph_config(preset), calibration=calibration)
+    from treetraits.pipeline.mapper import TreeMapper
+
+    return TreeMapper(config.mapper(), calibration)
+
+
+def make_processor(config: ServiceConfig, calibration: Calibration, lidar_model: str = "auto"):
+    """The processing core shared by replay and the live service."""
+    return SurveyProcessor(
+        make_mapper(config, calibration), calibration, config.localization, lidar_model
+    )

@@ -192,7 +192,7 @@ def test_bad_settings_are_named(key, value):
 
 
 def test_the_mapper_places_the_base_with_roll_and_pitch():
-    from treetraits.drivers.records import Pose
+    from treetraits.pipeline.localization.pose import Pose
     from treetraits.pipeline.mapper import TreeMapper
 
     pose = Pose(0, 1.0, 2.0, 0.3, np.zeros((3, 3)), "utm", z=0.5, roll=0.1, pitch=-0.2)

@@ -25,7 +25,7 @@ import pytest
 
 from treetraits.cli import main
 from treetraits.pipeline.linking import link_surveys
-from treetraits.service.season import SeasonStore
+from treetraits.season.store import SeasonStore
 from treetraits.sim.run import SurveySettings, simulate_survey
 
 # Three drives of a 2x2 block (5 m spacing), 10 m each: a few seconds of data, the

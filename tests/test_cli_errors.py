@@ -22,7 +22,7 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_TERMINATED, EXIT_USAGE
 from treetraits.service.config import ServiceConfig
 from treetraits.service.outputs import OutputError, RunWriter
-from treetraits.service.replay import make_processor
+from treetraits.service.survey import make_processor
 from treetraits.sim.run import SurveySettings, simulate_survey
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import CONTRACT_CSV_COLUMNS
-from treetraits.drivers.records import Fix, Tree, WheelSample
+from treetraits.drivers.records import Fix, WheelSample
 from treetraits.errors import ConfigError
 from treetraits.pipeline.fieldmap import FieldTree, load_field_map
 from treetraits.pipeline.georef import (
@@ -29,6 +29,7 @@ from treetraits.pipeline.georef import (
 from treetraits.pipeline.localization import LocalizationConfig, Localizer
 from treetraits.pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw
 from treetraits.pipeline.mapper import TrackedTree
+from treetraits.pipeline.trees import Tree
 
 GRID = UtmGrid.for_zone(11, north=True)  # a grove near Riverside, California
 E0, N0 = 467_000.0, 3_758_000.0

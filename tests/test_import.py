@@ -29,8 +29,8 @@ from treetraits.drivers.gnss.sources import LogSource, open_gnss_source
 from treetraits.drivers.gnss.summary import summarise
 from treetraits.drivers.gnss.times import sentence_time
 from treetraits.drivers.records import Fix, WheelSample
-from treetraits.drivers.rosbag_import import ImportOptions, import_bags
-from treetraits.drivers.rosbag_topics import CITRUSFARM_T_BASE_IMU
+from treetraits.drivers.rosbag.convert import ImportOptions, import_bags
+from treetraits.drivers.rosbag.topics import CITRUSFARM_T_BASE_IMU
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
 from treetraits.firmware_bridge.jackal.records import JackalImu

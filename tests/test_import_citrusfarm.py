@@ -32,7 +32,7 @@ from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.drivers.records import WheelSample
-from treetraits.drivers.rosbag_topics import CITRUSFARM_T_BASE_IMU
+from treetraits.drivers.rosbag.topics import CITRUSFARM_T_BASE_IMU
 from treetraits.firmware_bridge.jackal.records import JackalImu
 from treetraits.firmware_bridge.jackal.session import JackalProtocol
 from treetraits.pipeline.projection import scan_mid_time

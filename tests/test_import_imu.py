@@ -16,9 +16,9 @@ from ruamel.yaml import YAML
 from tests.conftest import FIXTURES
 from tests.test_import import _imu_row, cli, header, recorded, typestore, write_ros1
 from treetraits.drivers import recording as rec
-from treetraits.drivers.motion import decode_imu
-from treetraits.drivers.rosbag_import import ImportOptions, import_bags
-from treetraits.drivers.rosbag_topics import CITRUSFARM_T_BASE_IMU
+from treetraits.drivers.recording.motion import decode_imu
+from treetraits.drivers.rosbag.convert import ImportOptions, import_bags
+from treetraits.drivers.rosbag.topics import CITRUSFARM_T_BASE_IMU
 from treetraits.firmware_bridge.jackal.records import JackalImu
 from treetraits.firmware_bridge.jackal.session import JackalProtocol
 from treetraits.sim.run import SurveySettings, simulate_survey

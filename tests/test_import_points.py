@@ -12,8 +12,8 @@ from rosbags.rosbag2 import StoragePlugin
 from tests.conftest import VLP16_DIR, decode_file
 from tests.test_import import header, recorded, replay, typestore, write_ros1, write_ros2
 from treetraits.drivers import recording as rec
-from treetraits.drivers.points import decode_header, decode_points
-from treetraits.drivers.rosbag_import import import_bags
+from treetraits.drivers.recording.points import decode_header, decode_points
+from treetraits.drivers.rosbag.convert import import_bags
 from treetraits.errors import ParseError
 
 VELOVIEW = VLP16_DIR / "veloview_vlp16_20hz_strongest.pcap"  # 51 scans, single return
@@ -161,7 +161,7 @@ def test_nebula_clouds_in_a_ros2_bag_are_the_pcaps_scans(tmp_path, storage):
 def test_a_damaged_points_message_is_a_parse_error():
     scans, _ = decode_file(LIDARUTILS)
     store = typestore(ros1=False)
-    from treetraits.drivers.rosbag_import import TopicReport, point_cloud
+    from treetraits.drivers.rosbag.convert import TopicReport, point_cloud
 
     msg = nebula_rows(store, scans[:1])[0][3]
     (good,) = point_cloud(msg, 0, TopicReport("/p", None, 1))

@@ -19,7 +19,7 @@ import pytest
 from tests.conftest import VLP16_DIR
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
-from treetraits.drivers.rotation import RotatingRecorder
+from treetraits.drivers.recording.rotation import RotatingRecorder
 from treetraits.errors import EXIT_DATA_LOSS, EXIT_IO
 from treetraits.sim.run import SurveySettings, simulate_survey
 

@@ -16,9 +16,10 @@ import pytest
 
 from tests.conftest import FIXTURES
 from treetraits.drivers.calibration import Calibration, CameraModel, load_calibration
-from treetraits.drivers.records import POINT_DTYPE, Frame, Pose, Scan
+from treetraits.drivers.records import POINT_DTYPE, Frame, Scan
 from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
+from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.mapper import ScanResult, TrackedTree, TreeMapper, trunk_position
 from treetraits.pipeline.tracking import Motion
 from treetraits.sim.camera import FOLIAGE, Survey3Emulator

@@ -29,7 +29,8 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.sentences import checksum
 from treetraits.errors import EXIT_DATA_LOSS, EXIT_USAGE, SourceError
 from treetraits.service.config import ServiceConfig
-from treetraits.service.replay import make_processor, nmea_log_messages
+from treetraits.service.replay import nmea_log_messages
+from treetraits.service.survey import make_processor
 
 LOGS = sorted((FIXTURES / "nmea").glob("*.nmea"))
 CAPTURE = FIXTURES / "vlp16" / "lidarutils_vlp16_strongest_0x22.pcap"

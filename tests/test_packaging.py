@@ -35,6 +35,20 @@ ALLOWED = {
         "treetraits.drivers",
         "treetraits.firmware_bridge",
     },
+    # The offline tools sit beside the service, on top of it: nothing on the robot imports
+    # them, so the robot's install needs none of their dependencies.
+    "treetraits.season": {
+        "treetraits.season",
+        "treetraits.service",
+        "treetraits.pipeline",
+        "treetraits.drivers",
+    },
+    "treetraits.export": {
+        "treetraits.export",
+        "treetraits.service",
+        "treetraits.pipeline",
+        "treetraits.drivers",
+    },
 }
 SHARED = {"treetraits", "treetraits.errors", "treetraits.jit"}
 

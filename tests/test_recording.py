@@ -480,7 +480,7 @@ def test_zeroed_chunk_frame_is_skipped_to_the_next_chunk(long_recording, tmp_pat
 
 
 def test_format_1_1_carries_the_motion_channels_and_format_1_refuses_them(tmp_path):
-    from treetraits.drivers.motion import decode_imu, encode_imu, encode_odometry
+    from treetraits.drivers.recording.motion import decode_imu, encode_imu, encode_odometry
 
     odometry, imu = encode_odometry(0.5, -0.1), encode_imu((0.0, 0.01, -0.1), (0.2, 0.0, 9.81))
     with (

@@ -26,7 +26,7 @@ from treetraits.drivers.recording import (
     RecordingWriter,
     read_recording,
 )
-from treetraits.drivers.rotation import RecordingError, RotatingRecorder, rotated_path
+from treetraits.drivers.recording.rotation import RecordingError, RotatingRecorder, rotated_path
 from treetraits.errors import EXIT_OUTPUT_EXISTS, TreetraitsError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -159,7 +159,7 @@ def test_truncation_at_any_offset_replays_every_complete_chunk(tmp_path):
 _KILLED_WRITER = """
 import sys, time
 from pathlib import Path
-from treetraits.drivers.rotation import RotatingRecorder
+from treetraits.drivers.recording.rotation import RotatingRecorder
 rec = RotatingRecorder(Path(sys.argv[1]), max_bytes=10**9, chunk_bytes=10**8,
                        fsync_every_s=float(sys.argv[2]), calibration={"k": 1})
 i = 0
@@ -240,7 +240,7 @@ def test_default_writer_keeps_small_chunks_in_memory(tmp_path):
 _DISK_FULL_WRITER = """
 import os, random, resource, signal, sys
 from pathlib import Path
-from treetraits.drivers.rotation import RecordingError, RotatingRecorder
+from treetraits.drivers.recording.rotation import RecordingError, RotatingRecorder
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit -> EFBIG, not death
 rng = random.Random(0)
 rec = RotatingRecorder(Path(sys.argv[1]), max_bytes=200_000, chunk_bytes=20_000,

@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
-from treetraits.drivers.records import POINT_DTYPE, Pose, Scan
+from treetraits.drivers.records import POINT_DTYPE, Scan
 from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.errors import ConfigError
+from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.projection import scan_mid_time
 from treetraits.pipeline.rph import (
     DetectorConfig,

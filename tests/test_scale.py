@@ -135,7 +135,7 @@ def test_missing_trees_taken_in_piece_by_piece_are_those_of_the_whole_path(tmp_p
     from treetraits.pipeline.fieldmap import load_field_map
     from treetraits.pipeline.georef import FieldMapIndex, georeference, missing_trees
     from treetraits.service.config import ServiceConfig
-    from treetraits.service.replay import make_processor
+    from treetraits.service.survey import make_processor
     from treetraits.sim.gnss import GnssSettings
     from treetraits.sim.orchard import TreeSettings
     from treetraits.sim.run import SurveySettings, simulate_survey

@@ -1,5 +1,5 @@
 """The season's tree identity (pipeline/linking.py) and the season store
-(service/season.py): trees linked across surveys by field id or by position, missing trees
+(treetraits/season/store.py): trees linked across surveys by field id or by position, missing trees
 flagged, growth per 30 days. The batch over real twin recordings is tests/test_batch.py."""
 
 from __future__ import annotations
@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 
 from treetraits.cli import main
-from treetraits.drivers.records import Tree
 from treetraits.pipeline.linking import (
     DEFAULT_LINK_GATE_M,
     growth_per_30_days,
     link_by_position,
     link_surveys,
 )
-from treetraits.service.season import SeasonStore, Survey
+from treetraits.pipeline.trees import Tree
+from treetraits.season.store import SeasonStore, Survey
 
 DAY_NS = 86400 * 10**9
 T0 = 1_778_605_200 * 10**9  # 2026-05-12T17:00:00Z

@@ -25,7 +25,8 @@ from treetraits.drivers.velodyne.sources import open_source
 from treetraits.firmware_bridge.jackal.session import decode_stream
 from treetraits.pipeline.localization import LocalizationConfig, Localizer
 from treetraits.service.config import ServiceConfig
-from treetraits.service.replay import make_processor, open_input
+from treetraits.service.replay import open_input
+from treetraits.service.survey import make_processor
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.lidar import LidarSettings
 from treetraits.sim.paths import drive, waypoints

@@ -11,7 +11,7 @@ import sys
 import textwrap
 import time
 
-from treetraits.drivers.records import Tree
+from treetraits.pipeline.trees import Tree
 from treetraits.service.store import Observation, TraitStore
 
 

@@ -15,8 +15,7 @@ from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import load_calibration
 from treetraits.pipeline.projection import scan_mid_time
 from treetraits.service.config import ServiceConfig
-from treetraits.service.replay import make_processor
-from treetraits.service.survey import POSE_WAIT_NS
+from treetraits.service.survey import POSE_WAIT_NS, make_processor
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.paths import drive, riding_trajectory, waypoints
 from treetraits.sim.run import DEFAULT_CALIBRATION, SurveySettings, make_ground, simulate_survey

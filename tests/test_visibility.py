@@ -110,7 +110,7 @@ def test_a_crown_along_a_hedgerow_is_hidden_by_its_neighbours():
 
 
 def test_the_printed_table_marks_a_height_that_is_a_lower_bound():
-    from treetraits.drivers.records import Tree
+    from treetraits.pipeline.trees import Tree
     from treetraits.service.replay import format_table
 
     def tree(tree_id: str, top_seen: bool) -> Tree:

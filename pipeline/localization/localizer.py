@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from treetraits.drivers.records import Fix, Pose, WheelSample
+from treetraits.drivers.records import Fix, WheelSample
 from treetraits.pipeline.localization.config import LocalizationConfig, WheelGeometry
 from treetraits.pipeline.localization.ekf import PoseFilter, rotate_xy
+from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.localization.utm import UtmGrid, true_heading_to_grid_yaw, wrap_angle
 
 # A wheel step implying more than this speed is a counter reset, not motion.

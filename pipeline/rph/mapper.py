@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from treetraits.drivers.calibration import Calibration
-from treetraits.drivers.records import Frame, Pose, Scan
+from treetraits.drivers.records import Frame, Scan
+from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.mapper import TrackedTree
 from treetraits.pipeline.projection import scan_mid_time
 from treetraits.pipeline.rph.config import RphConfig

@@ -90,10 +90,10 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from treetraits.pipeline.linking import DEFAULT_LINK_GATE_M
-    from treetraits.service import batch as b
+    from treetraits.season import batch as b
+    from treetraits.season.store import SeasonStore, Survey
     from treetraits.service.config import load_config, with_method
     from treetraits.service.outdir import output_lock
-    from treetraits.service.season import SeasonStore, Survey
 
     if args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")

@@ -57,8 +57,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from treetraits.export.foxglove import export_foxglove
     from treetraits.service.config import load_config
-    from treetraits.service.foxglove import export_foxglove
 
     config = load_config(args.config)
     with tqdm(unit="B", unit_scale=True, desc="export", leave=False, disable=None) as bar:

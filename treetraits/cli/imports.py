@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from treetraits.drivers.rosbag_topics import (
+from treetraits.drivers.rosbag.topics import (
     CITRUSFARM_GNSS_QUALITY,
     CITRUSFARM_T_BASE_IMU,
     CITRUSFARM_TOPICS,
@@ -19,7 +19,7 @@ from treetraits.drivers.rosbag_topics import (
 from treetraits.errors import ConfigError
 
 if TYPE_CHECKING:
-    from treetraits.drivers.rosbag_import import ImportOptions, ImportReport
+    from treetraits.drivers.rosbag.convert import ImportOptions, ImportReport
 
 PRESETS = ("citrusfarm",)
 
@@ -98,7 +98,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 def options_from_args(args: argparse.Namespace) -> ImportOptions:
     """The import's options: the preset's, then what the user gave."""
     from treetraits.drivers.calibration import load_calibration
-    from treetraits.drivers.rosbag_import import ImportOptions
+    from treetraits.drivers.rosbag.convert import ImportOptions
     from treetraits.sim.run import DEFAULT_CALIBRATION
 
     topics: dict[str, str] | None = None
@@ -131,7 +131,7 @@ def options_from_args(args: argparse.Namespace) -> ImportOptions:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from treetraits.drivers.rosbag_import import import_bags
+    from treetraits.drivers.rosbag.convert import import_bags
 
     options = options_from_args(args)
     with tqdm(unit="msg", desc="import", leave=False, disable=None) as bar:

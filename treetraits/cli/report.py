@@ -32,8 +32,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from treetraits.season.report import load_report_data, write_report
     from treetraits.service.outdir import OutputDir
-    from treetraits.service.report import load_report_data, write_report
 
     data = load_report_data(args.source)  # inputs first: a bad source touches nothing
     output = OutputDir(

@@ -47,7 +47,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from treetraits.service.season import SeasonError, SeasonStore, season_trees_json
+    from treetraits.season.store import SeasonError, SeasonStore, season_trees_json
 
     with SeasonStore(args.season, create=False) as season:
         if args.season_command == "export":
@@ -66,14 +66,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace, season) -> int:
-    from treetraits.service.outdir import OutputDir
-    from treetraits.service.season_export import (
+    from treetraits.season.export import (
         CSV_NAME,
         EXPORT_OUTPUTS,
         GEOJSON_NAME,
         write_season_csv,
         write_season_geojson,
     )
+    from treetraits.service.outdir import OutputDir
 
     output = OutputDir(
         args.out, EXPORT_OUTPUTS, force=args.force, inputs=(args.season,), what="an earlier export"

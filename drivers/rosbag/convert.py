@@ -11,9 +11,9 @@ the recording's channels (docs/import.md):
 - `sensor_msgs/Image` (rgb8, bgr8, mono8) JPEG-encoded, `sensor_msgs/CompressedImage`
   (JPEG as is, others re-encoded) on `/camera/jpeg`;
 - `sensor_msgs/PointCloud2`: the scan's points on `/lidar/points` (format 1.1,
-  `drivers/points.py`, `drivers/pointcloud2.py`);
+  `drivers/recording/points.py`, `drivers/rosbag/pointcloud2.py`);
 - `nav_msgs/Odometry` (its twist) on `/wheels/odometry` and `sensor_msgs/Imu` (rates and
-  accelerations) on `/imu/data`: format 1.1 (`drivers/motion.py`), so a recording holding
+  accelerations) on `/imu/data`: format 1.1 (`drivers/recording/motion.py`), so a recording holding
   them is marked 1.1.
 
 Other messages keep the bag's receive time as `log_time`; `publish_time` follows the
@@ -40,10 +40,10 @@ import numpy as np
 from treetraits.drivers import recording as rec
 from treetraits.drivers.gnss.compose import fix_sentences
 from treetraits.drivers.gnss.times import NmeaClock
-from treetraits.drivers.motion import encode_imu, encode_odometry
-from treetraits.drivers.points import encode_points
-from treetraits.drivers.rosbag_frames import BASE_FRAME, StaticFrames, quaternion_matrix, rotate
-from treetraits.drivers.rosbag_topics import (
+from treetraits.drivers.recording.motion import encode_imu, encode_odometry
+from treetraits.drivers.recording.points import encode_points
+from treetraits.drivers.rosbag.frames import BASE_FRAME, StaticFrames, quaternion_matrix, rotate
+from treetraits.drivers.rosbag.topics import (
     KIND_TYPES,
     NOT_IMPORTED_YET,
     V11_KINDS,
@@ -322,9 +322,9 @@ def compressed_image(msg: Any, log_time: int, jpeg_quality: int, report: TopicRe
 
 
 def point_cloud(msg: Any, log_time: int, report: TopicReport) -> list[_Out]:
-    """A PointCloud2 as one `/lidar/points` message (`drivers/points.py`); publish_time =
+    """A PointCloud2 as one `/lidar/points` message (`drivers/recording/points.py`); publish_time =
     header stamp. Points without finite x, y, z are dropped and counted."""
-    from treetraits.drivers.pointcloud2 import CloudError, cloud_points
+    from treetraits.drivers.rosbag.pointcloud2 import CloudError, cloud_points
 
     stamp = _stamp_ns(msg.header.stamp)
     try:
@@ -359,7 +359,7 @@ def imu(msg: Any, log_time: int, mounting: ImuMounting) -> list[_Out]:
 
 class ImuMounting:
     """R_base_imu per IMU frame: the calibration's `T_base_imu`, else the bag's static
-    transforms, else identity (`drivers/rosbag_frames.py`). `sources` says, per frame,
+    transforms, else identity (`drivers/rosbag/frames.py`). `sources` says, per frame,
     where its rotation came from (the import summary shows it)."""
 
     def __init__(self, calibration: Mapping[str, Any] | None, frames: StaticFrames):

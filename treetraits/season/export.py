@@ -11,7 +11,7 @@ from typing import Any, TextIO
 
 from treetraits.pipeline.georef import _write_atomically, iso_utc, point_geometry
 from treetraits.pipeline.linking import growth_per_30_days
-from treetraits.service.season import SeasonTree
+from treetraits.season.store import SeasonTree
 
 CSV_NAME = "season.csv"
 GEOJSON_NAME = "season.geojson"

@@ -18,8 +18,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from treetraits import __version__
-from treetraits.drivers.records import Tree
 from treetraits.errors import TreetraitsError
+from treetraits.pipeline.trees import Tree
 from treetraits.service.config import ServiceConfig
 
 SOFTWARE = f"treetraits {__version__}"

@@ -31,9 +31,10 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
-from treetraits.drivers.records import Fix, Frame, Pose, Scan
+from treetraits.drivers.records import Fix, Frame, Scan
 from treetraits.errors import ConfigError, OutputExistsError, ParseError, SourceError
 from treetraits.pipeline.classify import TREE
+from treetraits.pipeline.localization.pose import Pose
 
 MAP_FRAME = "map"
 BASE_FRAME = "base_link"
@@ -412,7 +413,7 @@ def export_foxglove(
 
 def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progress) -> None:
     calibration = inputs.calibration
-    from treetraits.service.replay import make_processor
+    from treetraits.service.survey import make_processor
 
     processor = make_processor(config, calibration)
     splitter, epochs = SentenceSplitter(), EpochAssembler()

@@ -10,11 +10,11 @@ from treetraits.errors import ConfigError
 # Kinds a topic can be imported as (`--topics KIND=TOPIC`), and the ROS types of each.
 KIND_TYPES: Mapping[str, tuple[str, ...]] = {
     "lidar": ("velodyne_msgs/msg/VelodyneScan",),
-    # Recording format 1.1 (drivers/points.py): decoded clouds, no packets.
+    # Recording format 1.1 (drivers/recording/points.py): decoded clouds, no packets.
     "points": ("sensor_msgs/msg/PointCloud2",),
     "gnss": ("nmea_msgs/msg/Sentence", "sensor_msgs/msg/NavSatFix"),
     "camera": ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"),
-    # Recording format 1.1 (drivers/motion.py).
+    # Recording format 1.1 (drivers/recording/motion.py).
     "odom": ("nav_msgs/msg/Odometry",),
     "imu": ("sensor_msgs/msg/Imu",),
 }

@@ -16,8 +16,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from treetraits.drivers.records import Tree
 from treetraits.errors import TreetraitsError
+from treetraits.pipeline.trees import Tree
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS season (key TEXT PRIMARY KEY, value TEXT NOT NULL);

@@ -140,8 +140,8 @@ def _json_list(text: str | None) -> list:
 
 
 def _season_data(path: Path) -> ReportData:
-    from treetraits.service.season import SeasonError, SeasonStore
-    from treetraits.service.season_export import growth
+    from treetraits.season.export import growth
+    from treetraits.season.store import SeasonError, SeasonStore
 
     try:
         with SeasonStore(path, create=False) as season:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from treetraits.drivers.points import PointsHeader, azimuth_of
+from treetraits.drivers.recording.points import PointsHeader, azimuth_of
 from treetraits.drivers.records import POINT_DTYPE
 
 # sensor_msgs/PointField datatypes.

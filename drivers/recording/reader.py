@@ -1,39 +1,20 @@
-"""Recording format v1: every sensor's raw bytes in one MCAP file, written and read back.
-
-The onboard recorder writes what each sensor sent, exactly as received, so a field day can
-be replayed through the same drivers later. The format (frozen, see docs/architecture.md):
-
-- one MCAP file, zstd-compressed chunks;
-- one channel per sensor stream, no schema (schema id 0), the `message_encoding` naming the
-  wire format (`TOPIC_ENCODINGS`);
-- `log_time` = host receive time, `publish_time` = the sensor's own UTC time where it has
-  one, else the host time; both in ns since the Unix epoch;
-- a metadata record named `treetraits` holding `format_version` ("1"; "1.1" for a
-  recording that carries the motion and points channels of `V11_TOPICS`), `software` and
-  `calibration` (a JSON object as a string);
-- attachments may hold the field map (`field_map.geojson`).
-
-`RecordingWriter` writes such a file; `read_recording` reads one linearly, so a file cut by
-a power failure still yields every message of every chunk completed before the cut, and a
-damaged chunk is skipped (reading resumes at the next good one) and accounted for.
-"""
+"""Reads a recording back linearly, so that a file cut by a power failure still yields
+every message of every chunk completed before the cut, and a damaged chunk is skipped
+(reading resumes at the next good one) and accounted for (`Damage`)."""
 
 from __future__ import annotations
 
 import contextlib
 import io
-import json
 import mmap
-import operator
 import os
 import re
 import struct
-import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any
+from typing import IO
 
 import zstandard
 from mcap.exceptions import McapError
@@ -50,59 +31,20 @@ from mcap.records import (
     Metadata,
 )
 from mcap.stream_reader import StreamReader, breakup_chunk
-from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
-import treetraits
 from treetraits.drivers.jsontext import loads_limited
+from treetraits.drivers.recording.format import (
+    FORMAT_VERSION,
+    MCAP_MAGIC,
+    METADATA_NAME,
+    READ_VERSIONS,
+    RECORD_SIZE_LIMIT,
+    SOFTWARE,
+    RecordedAttachment,
+    RecordedMessage,
+    RecordingMetadata,
+)
 from treetraits.errors import SourceError
-
-FORMAT_VERSION = "1"
-# Format 1.1 adds the motion and points channels (`V11_TOPICS`); a writer marks a recording 1.1 only
-# when asked to, so a recording without them stays readable by format-1 readers.
-FORMAT_VERSION_MOTION = "1.1"
-READ_VERSIONS = (FORMAT_VERSION, FORMAT_VERSION_MOTION)
-METADATA_NAME = "treetraits"
-SOFTWARE = f"treetraits {treetraits.__version__}"
-
-LIDAR_PACKETS = "/lidar/packets"
-LIDAR_TELEMETRY = "/lidar/telemetry"
-CAMERA_JPEG = "/camera/jpeg"
-GNSS_NMEA = "/gnss/nmea"
-WHEELS_JACKAL = "/wheels/jackal"
-WHEELS_BRIDGE = "/wheels/bridge"
-WHEELS_ODOMETRY = "/wheels/odometry"
-IMU_DATA = "/imu/data"
-LIDAR_POINTS = "/lidar/points"
-
-# Topic -> message_encoding, the only channels a v1 recording is written with.
-TOPIC_ENCODINGS: Mapping[str, str] = {
-    LIDAR_PACKETS: "velodyne-data",  # one 1206-byte UDP payload from port 2368
-    LIDAR_TELEMETRY: "velodyne-position",  # one 512-byte UDP payload from port 8308
-    CAMERA_JPEG: "jpeg",
-    GNSS_NMEA: "nmea0183",
-    WHEELS_JACKAL: "rosserial",
-    WHEELS_BRIDGE: "treetraits-bridge",
-    # Format 1.1 (drivers/motion.py): a robot's odometry and an IMU given as numbers.
-    WHEELS_ODOMETRY: "treetraits-odometry",
-    IMU_DATA: "treetraits-imu",
-    # Format 1.1 (drivers/points.py): a decoded point cloud, one message per scan.
-    LIDAR_POINTS: "treetraits-points",
-}
-V11_TOPICS = frozenset({WHEELS_ODOMETRY, IMU_DATA, LIDAR_POINTS})
-
-FIELD_MAP_NAME = "field_map.geojson"
-FIELD_MAP_MEDIA_TYPE = "application/geo+json"
-
-# Chunks are compressed and written whole, so a power cut loses the chunk in progress:
-# 256 KiB is about a second of VLP-16 traffic.
-DEFAULT_CHUNK_SIZE = 256 * 1024
-# No record of a v1 recording (chunk, attachment), compressed or not, is larger than this;
-# a bigger length read from a file is garbage (a torn write) and ends the reading.
-RECORD_SIZE_LIMIT = 64 * 1024 * 1024
-
-_MCAP_MAGIC = b"\x89MCAP0\r\n"
-_U32 = 1 << 32
-_U64 = 1 << 64
 
 
 class _CorruptRecordError(Exception):
@@ -120,304 +62,6 @@ _READ_ERRORS = (
     zstandard.ZstdError,
     _CorruptRecordError,
 )
-
-
-@dataclass(frozen=True, slots=True)
-class RecordedMessage:
-    """One message of a recording: the sensor's bytes exactly as received.
-
-    `log_time` is the host receive time, `publish_time` the sensor's own UTC time (or the
-    host time when the sensor has none), both ns since the Unix epoch; `sequence` counts the
-    messages of the topic from 0 in the writer.
-    """
-
-    topic: str
-    log_time: int
-    publish_time: int
-    sequence: int
-    data: bytes
-
-
-@dataclass(frozen=True, slots=True)
-class RecordingMetadata:
-    """The `treetraits` metadata record of a recording, calibration parsed back to a dict."""
-
-    format_version: str
-    software: str
-    calibration: dict[str, Any]
-
-
-@dataclass(frozen=True, slots=True)
-class RecordedAttachment:
-    """An attachment of a recording (e.g. the field map)."""
-
-    name: str
-    media_type: str
-    log_time: int
-    create_time: int
-    data: bytes
-
-
-def _time_ns(value: int, what: str) -> int:
-    """An MCAP timestamp: an integer in [0, 2**64)."""
-    try:
-        value = operator.index(value)
-    except TypeError:
-        raise TypeError(f"{what} must be an int in ns, got {type(value).__name__}") from None
-    if not 0 <= value < _U64:
-        raise ValueError(f"{what} must be in [0, 2**64) ns, got {value}")
-    return value
-
-
-class RecordingWriter:
-    """Writes a recording (format v1) to a path or a binary stream.
-
-    Use it as a context manager, or call `close()`: only a closed recording has its summary
-    (indexes, statistics) and is fsynced. A recording left unclosed by a crash is still
-    readable up to its last complete chunk.
-
-    A path is created, never overwritten unless `overwrite` is set. A stream must support
-    `write()` and `tell()`; it is flushed (and fsynced when it has a file descriptor) but
-    not closed. `calibration` must be JSON-serializable; it is stored as a JSON string.
-
-    For live recording, bound what a crash loses (both off by default, which keeps chunks
-    in memory until they exceed `chunk_size` and buffers the stream as it likes):
-    - `max_chunk_age_s`: a chunk open that long is closed at the next `write()`, so a
-      slow stream (GNSS alone) still reaches the disk within about that time;
-    - `fsync_every_s`: fsync at most this often, when a chunk is written.
-    With either set, every chunk is flushed to the OS as soon as it is written, so a
-    kill -9 loses only the open chunk. `flush()` closes the open chunk on demand.
-    """
-
-    def __init__(
-        self,
-        output: str | os.PathLike[str] | IO[bytes],
-        *,
-        calibration: Mapping[str, Any] | None = None,
-        chunk_size: int = DEFAULT_CHUNK_SIZE,
-        overwrite: bool = False,
-        max_chunk_age_s: float | None = None,
-        fsync_every_s: float | None = None,
-        format_version: str = FORMAT_VERSION,
-    ):
-        if format_version not in READ_VERSIONS:
-            raise ValueError(
-                f"format_version must be one of {READ_VERSIONS}, got {format_version!r}"
-            )
-        self.format_version = format_version
-        if chunk_size <= 0:
-            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
-        for name, value in (("max_chunk_age_s", max_chunk_age_s), ("fsync_every_s", fsync_every_s)):
-            if value is not None and not value > 0:
-                raise ValueError(f"{name} must be positive seconds or None, got {value}")
-        self._max_chunk_age_s = max_chunk_age_s
-        self._fsync_every_s = fsync_every_s
-        self._streaming = max_chunk_age_s is not None or fsync_every_s is not None
-        self._chunk_opened: float | None = None  # monotonic time of the open chunk's first message
-        self._last_fsync = time.monotonic()
-        calibration_json = json.dumps(
-            dict(calibration or {}), sort_keys=True, allow_nan=False, separators=(",", ":")
-        )
-        self._path: Path | None
-        self._file: IO[bytes]
-        if isinstance(output, (str, os.PathLike)):
-            self._path = Path(output)
-            self._file = open(self._path, "wb" if overwrite else "xb")  # noqa: SIM115
-        else:
-            self._path = None
-            self._file = output
-        self._channels: dict[str, int] = {}
-        self._sequences: dict[str, int] = {}
-        self._closed = False
-        self._handed_over = 0  # stream position last handed to the OS (streaming mode)
-        self._final_size = 0
-        try:
-            self._writer = Writer(
-                self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD
-            )
-            self._writer.start(profile="", library=f"{SOFTWARE}; {LIBRARY_IDENTIFIER}")
-            self._writer.add_metadata(
-                METADATA_NAME,
-                {
-                    "format_version": format_version,
-                    "software": SOFTWARE,
-                    "calibration": calibration_json,
-                },
-            )
-        except BaseException:
-            if self._path is not None:
-                self._file.close()
-            raise
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def write(
-        self, topic: str, data: bytes, log_time: int, publish_time: int | None = None
-    ) -> None:
-        """Append one message: `data` exactly as received, times in ns since the epoch.
-
-        `publish_time` defaults to `log_time` (for sensors without their own clock).
-        Raises ValueError for a topic outside `TOPIC_ENCODINGS`, or of format 1.1 in a
-        recording written as format 1.
-        """
-        if self._closed:
-            raise ValueError("write to a closed recording")
-        encoding = TOPIC_ENCODINGS.get(topic)
-        if encoding is None:
-            raise ValueError(
-                f"unknown topic {topic!r}: a v1 recording carries only {', '.join(TOPIC_ENCODINGS)}"
-            )
-        if topic in V11_TOPICS and self.format_version == FORMAT_VERSION:
-            raise ValueError(
-                f"topic {topic!r} is of format {FORMAT_VERSION_MOTION}: "
-                f"write with format_version={FORMAT_VERSION_MOTION!r}"
-            )
-        if not isinstance(data, (bytes, bytearray, memoryview)):
-            raise TypeError(f"data must be bytes, got {type(data).__name__}")
-        log_time = _time_ns(log_time, "log_time")
-        publish_time = log_time if publish_time is None else _time_ns(publish_time, "publish_time")
-        channel_id = self._channels.get(topic)
-        if channel_id is None:
-            channel_id = self._writer.register_channel(topic, encoding, schema_id=0)
-            self._channels[topic] = channel_id
-            self._sequences[topic] = 0
-        sequence = self._sequences[topic]
-        self._sequences[topic] = (sequence + 1) % _U32  # MCAP sequences are uint32
-        self._writer.add_message(
-            channel_id,
-            log_time=log_time,
-            data=bytes(data),
-            publish_time=publish_time,
-            sequence=sequence,
-        )
-        if not self._streaming:
-            return
-        # In chunked mode the writer writes to the stream only when it closes a chunk (or
-        # writes an attachment), so a moved position means something to hand to the OS.
-        if self._file.tell() != self._handed_over:
-            self._chunk_written()
-        elif self._chunk_opened is None:
-            self._chunk_opened = time.monotonic()
-        elif (
-            self._max_chunk_age_s is not None
-            and time.monotonic() - self._chunk_opened >= self._max_chunk_age_s
-        ):
-            self._writer.flush()
-            self._chunk_written()
-
-    def _chunk_written(self) -> None:
-        """A chunk just went to the stream: hand it to the OS, fsync if it is time."""
-        self._chunk_opened = None
-        self._file.flush()
-        self._handed_over = self._file.tell()
-        if (
-            self._fsync_every_s is not None
-            and time.monotonic() - self._last_fsync >= self._fsync_every_s
-        ):
-            self._fsync()
-
-    def flush(self, *, fsync: bool = False) -> None:
-        """Close the open chunk (if it holds messages), write it and everything buffered
-        to the OS, and fsync when `fsync` is set. Compression works per chunk, so flushing
-        often costs compression ratio."""
-        if self._closed:
-            raise ValueError("flush of a closed recording")
-        self._writer.flush()
-        self._chunk_opened = None
-        self._handed_over = self._file.tell()
-        if fsync:
-            self._fsync()
-
-    @property
-    def bytes_written(self) -> int:
-        """Bytes handed to the output so far (the open chunk, still in memory, excluded);
-        after `close()`, the size of the finished recording."""
-        if self._closed:
-            return self._final_size
-        return self._file.tell()
-
-    def abort(self) -> None:
-        """Close without writing the open chunk or the summary, e.g. after a write failed
-        (disk full): the file stays readable up to its last complete chunk. Errors while
-        closing are swallowed, since the file is already known to be broken. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        with contextlib.suppress(OSError, ValueError):
-            self._final_size = self._file.tell()
-        if self._path is not None:
-            with contextlib.suppress(OSError, ValueError):
-                self._file.close()
-
-    def attach(
-        self,
-        name: str,
-        data: bytes,
-        media_type: str,
-        *,
-        log_time: int | None = None,
-        create_time: int = 0,
-    ) -> None:
-        """Attach a file (e.g. `FIELD_MAP_NAME`, `FIELD_MAP_MEDIA_TYPE`).
-
-        `log_time` defaults to now; `create_time` 0 means unknown.
-        """
-        if self._closed:
-            raise ValueError("attach to a closed recording")
-        if not isinstance(data, (bytes, bytearray, memoryview)):
-            raise TypeError(f"data must be bytes, got {type(data).__name__}")
-        self._writer.add_attachment(
-            create_time=_time_ns(create_time, "create_time"),
-            log_time=_time_ns(time.time_ns() if log_time is None else log_time, "log_time"),
-            name=name,
-            media_type=media_type,
-            data=bytes(data),
-        )
-
-    def close(self) -> None:
-        """Write the last chunk and the summary, flush and fsync. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            self._writer.finish()
-        finally:
-            try:
-                self._file.flush()
-                self._final_size = self._file.tell()
-                self._fsync()
-            finally:
-                if self._path is not None:
-                    self._file.close()
-
-    def _fsync(self) -> None:
-        self._last_fsync = time.monotonic()
-        if self._path is None:
-            # A caller's stream: fsync only when it is a real file.
-            with contextlib.suppress(AttributeError, OSError):
-                os.fsync(self._file.fileno())
-            return
-        os.fsync(self._file.fileno())
-        # The new directory entry too, so the file itself survives a power cut.
-        with contextlib.suppress(OSError):
-            fd = os.open(self._path.parent, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-
-    def __enter__(self) -> RecordingWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 class _CappedFile:
@@ -588,13 +232,13 @@ class RecordingReader:
         self._summary_channels: dict[int, Channel] | None = None
         self._file = self._open()
         try:
-            head = self._file.read(len(_MCAP_MAGIC))
-            if head != _MCAP_MAGIC and not (
-                len(head) < len(_MCAP_MAGIC) and _MCAP_MAGIC.startswith(head)
+            head = self._file.read(len(MCAP_MAGIC))
+            if head != MCAP_MAGIC and not (
+                len(head) < len(MCAP_MAGIC) and MCAP_MAGIC.startswith(head)
             ):
                 raise SourceError(
                     f"{self.path}: not an MCAP file (expected a treetraits recording, format "
-                    f"v{FORMAT_VERSION}: an MCAP file starting with {_MCAP_MAGIC!r}; "
+                    f"v{FORMAT_VERSION}: an MCAP file starting with {MCAP_MAGIC!r}; "
                     f"found {head!r})"
                 )
             self._file.seek(0)
@@ -630,7 +274,7 @@ class RecordingReader:
         footer, or its footer without the closing magic. With `track`, damage is noted in
         `damage` and the offset of each record yielded in `_offset`."""
         size = os.fstat(file.fileno()).st_size
-        offset = len(_MCAP_MAGIC)
+        offset = len(MCAP_MAGIC)
         while offset < size:
             try:
                 record, end = self._record_at(file, offset, size)
@@ -657,7 +301,7 @@ class RecordingReader:
                 yield record
                 if isinstance(record, Footer):
                     file.seek(end)
-                    if file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC and track:
+                    if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC and track:
                         self.truncated = True
                     return
             offset = end
@@ -801,8 +445,8 @@ class RecordingReader:
         if self._summary_channels is None:
             self._summary_channels = {}
             with contextlib.suppress(*_READ_ERRORS, OSError), self._open() as file:
-                file.seek(-len(_MCAP_MAGIC), io.SEEK_END)
-                if file.read(len(_MCAP_MAGIC)) == _MCAP_MAGIC:
+                file.seek(-len(MCAP_MAGIC), io.SEEK_END)
+                if file.read(len(MCAP_MAGIC)) == MCAP_MAGIC:
                     file.seek(0)
                     reader = SeekingReader(
                         _CappedFile(file, self._limit),  # type: ignore[arg-type]
@@ -862,8 +506,8 @@ class RecordingReader:
         """Metadata and attachments through the summary's indexes, or None when the file
         has no complete, consistent summary (truncated, or written without indexes)."""
         try:
-            file.seek(-len(_MCAP_MAGIC), io.SEEK_END)
-            if file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+            file.seek(-len(MCAP_MAGIC), io.SEEK_END)
+            if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
                 return None
             file.seek(0)
             reader = SeekingReader(
@@ -921,11 +565,11 @@ def _next_frame(file: IO[bytes], start: int, size: int, limit: int) -> int | Non
 
 def _ends_with_footer(file: IO[bytes], size: int) -> bool:
     """Whether the file ends with a footer record and the closing magic (complete)."""
-    if size < len(_MCAP_MAGIC) * 2 + _FOOTER_RECORD:
+    if size < len(MCAP_MAGIC) * 2 + _FOOTER_RECORD:
         return False
-    file.seek(size - len(_MCAP_MAGIC) - _FOOTER_RECORD)
-    tail = file.read(_FOOTER_RECORD + len(_MCAP_MAGIC))
-    return tail[:9] == b"\x02" + struct.pack("<Q", 20) and tail[-8:] == _MCAP_MAGIC
+    file.seek(size - len(MCAP_MAGIC) - _FOOTER_RECORD)
+    tail = file.read(_FOOTER_RECORD + len(MCAP_MAGIC))
+    return tail[:9] == b"\x02" + struct.pack("<Q", 20) and tail[-8:] == MCAP_MAGIC
 
 
 def _chain(first: list[McapRecord], rest: Iterator[McapRecord]) -> Iterator[McapRecord]:
