@@ -63,3 +63,8 @@ class PlatformError(TreetraitsError):
     the compiled kernels); what to change is in the message."""
 
     exit_code = EXIT_IO
+
+
+class MissingExtraError(TreetraitsError):
+    """A command of an offline tool whose optional dependencies are not installed (the
+    robot's install leaves them out); the message names the extra to install."""

@@ -87,6 +87,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from treetraits.extras import require_extra
+
+    require_extra("season", "treetraits batch")
     from tqdm import tqdm
 
     from treetraits.pipeline.linking import DEFAULT_LINK_GATE_M

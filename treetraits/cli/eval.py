@@ -69,6 +69,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from treetraits.extras import require_extra
+
+    require_extra("eval", "treetraits eval")
     from treetraits.evaluation.cases import CASES, select_cases
     from treetraits.evaluation.report import write_report
     from treetraits.evaluation.run import parse_methods, run_evaluation

@@ -55,6 +55,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from treetraits.extras import require_extra
+
+    require_extra("export", "treetraits export foxglove")
     from tqdm import tqdm
 
     from treetraits.export.foxglove import export_foxglove

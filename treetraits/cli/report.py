@@ -32,6 +32,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from treetraits.extras import require_extra
+
+    require_extra("season", "treetraits report")
     from treetraits.season.report import load_report_data, write_report
     from treetraits.service.outdir import OutputDir
 
