@@ -26,9 +26,10 @@ def _missing(module: str) -> bool:
         return True
 
 
-def require_extra(extra: str, command: str) -> None:
-    """Raise MissingExtraError when a module of `extra` cannot be imported."""
-    missing = [m for m in EXTRA_MODULES[extra] if _missing(m)]
+def require_extra(extra: str, command: str, modules: tuple[str, ...] | None = None) -> None:
+    """Raise MissingExtraError when a module of `extra` (or of `modules`, the part of it
+    that `command` uses) cannot be imported."""
+    missing = [m for m in modules or EXTRA_MODULES[extra] if _missing(m)]
     if missing:
         raise MissingExtraError(
             f"{command} needs the '{extra}' extra ({', '.join(missing)} not installed): "

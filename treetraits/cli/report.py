@@ -34,7 +34,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from treetraits.extras import require_extra
 
-    require_extra("season", "treetraits report")
+    require_extra("season", "treetraits report", ("matplotlib",))
     from treetraits.season.report import load_report_data, write_report
     from treetraits.service.outdir import OutputDir
 
