@@ -19,7 +19,7 @@ DEMO_OUT := out/demo
 # OpenCV) and what building systemd-python needs (libsystemd headers, pkg-config, a C
 # compiler and the Python headers).
 SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libgomp1 libsystemd-dev pkg-config gcc systemd
-# Only for `make test`: tests/test_batch.py renders the HTML report in a real browser.
+# Only for `make test`: tests/season/test_batch.py renders the HTML report in a real browser.
 # Best effort: where the package is not in apt (Ubuntu's Chromium is a snap) the test
 # that needs it is skipped with its reason.
 TEST_PACKAGES := chromium

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # for tests.*: 
 import numpy as np
 from pynmeagps import NMEAReader
 
-from tests.test_localization import PATH, WHEELS, drive, sensors
+from tests.helpers.localization import PATH, WHEELS, drive, sensors
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.drivers.records import WheelSample

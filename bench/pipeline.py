@@ -17,7 +17,7 @@ input RPH gets), R = RPH's median / ours, with the faster of the two RPH presets
 
 `--sweep` instead prints the measurements behind docs/pipeline.md (voxel x tolerance,
 the innovation's scale, the merge, the trait methods under stray returns and pose
-noise) on the 2 x 3 grid drive of tests/test_mapper.py. It takes a few minutes.
+noise) on the 2 x 3 grid drive of tests/helpers/twin.py. It takes a few minutes.
 
     .venv/bin/python bench/pipeline.py [--rounds 30] [--sweep]
 """
@@ -233,8 +233,7 @@ def clustering_alone(pairs, calibration) -> tuple[float, float]:
 
 
 def sweep() -> None:
-    from tests.test_mapper import grid_drive, match
-    from tests.test_traits import ghost_returns
+    from tests.helpers.twin import ghost_returns, grid_drive, match
 
     data = grid_drive()
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 
+from tests.helpers.paths import REPO
 from treetraits.jit import kernel
 from treetraits.pipeline.clustering import kernel_layout
 
@@ -84,7 +84,7 @@ print(*(f"{k.py_func.__module__}.{k.__name__}" for k in jit.KERNELS if not k.sig
 
 
 def _modules_with_kernels() -> list[str]:
-    repo = Path(__file__).resolve().parents[1]
+    repo = REPO
     modules = []
     for folder in ("drivers", "pipeline", "service", "sim", "firmware_bridge", "treetraits"):
         for path in (repo / folder).rglob("*.py"):

@@ -4,6 +4,7 @@ at the top level, every package folder is in it, and the layers import one way."
 from __future__ import annotations
 
 import ast
+import re
 import shutil
 import subprocess
 import sys
@@ -12,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.helpers.paths import REPO
+
 # Folder at the repository's root -> its package under `treetraits`.
 ROOTS = {
     "treetraits": "treetraits",
@@ -134,4 +136,87 @@ def test_the_layers_import_one_way():
                     continue
                 if not any(name == a or name.startswith(a + ".") for a in ALLOWED[layer]):
                     wrong.append(f"{module.relative_to(REPO)} imports {name}")
+    assert not wrong, "\n".join(wrong)
+
+
+# --- the tests' own layout ------------------------------------------------------------------
+
+TESTS = REPO / "tests"
+# Folders of tests/ that hold no tests: the shared builders and the fixture data.
+NOT_TESTS = {"helpers", "fixtures"}
+# `from tests... import` or `import tests...` in a string (code a test hands a subprocess).
+IMPORT_IN_TEXT = re.compile(r"\b(?:from|import)\s+(tests(?:\.\w+)*)")
+
+
+def modules_of_tests() -> list[Path]:
+    """Every Python file of tests/ (the fixture data left out)."""
+    return sorted(p for p in TESTS.rglob("*.py") if "fixtures" not in p.relative_to(TESTS).parts)
+
+
+def module_of(path: Path) -> str:
+    return ".".join(path.relative_to(REPO).with_suffix("").parts)
+
+
+def is_test_module(name: str) -> bool:
+    """`tests.<...>.test_*` or `tests.conftest`: a module with tests or fixtures."""
+    parts = name.split(".")
+    return parts[0] == "tests" and (parts[-1] == "conftest" or parts[-1].startswith("test_"))
+
+
+def modules_imported(path: Path) -> set[str]:
+    """Every module (and `from X import name`: X.name too) that `path` imports, relative
+    imports resolved, plus the `tests.` imports in its strings."""
+    package = module_of(path).rsplit(".", 1)[0]
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                module = f"{base}.{node.module}" if node.module else base
+            else:
+                module = node.module or ""
+            names.add(module)
+            names |= {f"{module}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            names |= set(IMPORT_IN_TEXT.findall(node.value))
+    return names
+
+
+def test_no_test_module_imports_another():
+    """Test modules share code through tests/helpers only: a test module imported by
+    another runs its module-level code twice and ties the two files together."""
+    wrong = [
+        f"{path.relative_to(REPO)} imports {name}"
+        for path in modules_of_tests()
+        for name in sorted(modules_imported(path))
+        if is_test_module(name)
+    ]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_tests_mirror_the_code():
+    """Each test file sits in the folder of tests/ that mirrors the code it tests (a
+    package or folder of the checkout, or of `treetraits/`); at tests/ itself only the
+    tests of the root package (`treetraits/<name>.py`) and of the packaging. Every folder
+    of tests is a package (unique module names)."""
+    wrong = []
+    for path in modules_of_tests():
+        parts = path.relative_to(TESTS).parts
+        folder, name = parts[:-1], parts[-1]
+        if folder and folder[0] in NOT_TESTS:
+            if name.startswith("test_"):
+                wrong.append(f"{path.relative_to(REPO)}: tests in tests/{folder[0]}")
+            continue
+        if not (path.parent / "__init__.py").exists():
+            wrong.append(f"{path.relative_to(REPO)}: no __init__.py beside it")
+        if not name.startswith("test_"):
+            continue
+        if not folder:
+            subject = name.removeprefix("test_")
+            if name != "test_packaging.py" and not (REPO / "treetraits" / subject).is_file():
+                wrong.append(f"{path.relative_to(REPO)}: not a test of treetraits/{subject}")
+        elif not any((root / Path(*folder)).is_dir() for root in (REPO, REPO / "treetraits")):
+            wrong.append(f"{path.relative_to(REPO)}: no folder {Path(*folder)} in the code")
     assert not wrong, "\n".join(wrong)

@@ -7,9 +7,9 @@ n elements back to back; `T[]` = uint32 count + elements; `time` = uint32 sec + 
 prefix (the frame header carries the length).
 
 Each `MessageType` names its fields as the .msg file does, with the md5sum ROS 1 computes
-from the definition (tests/test_jackal_rosserial.py recomputes each from the public .msg
-text). A topic is decoded only when the md5 the MCU announced in its TopicInfo equals ours:
-a different md5 means a different layout.
+from the definition (tests/firmware_bridge/jackal/test_rosserial.py recomputes each from
+the public .msg text). A topic is decoded only when the md5 the MCU announced in its
+TopicInfo equals ours: a different md5 means a different layout.
 
 `decode` gives plain values: ints, floats, bools, `bytes` for strings, tuples for arrays,
 dicts for nested messages, and int nanoseconds for `time`/`duration`.

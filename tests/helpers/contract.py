@@ -1,0 +1,23 @@
+"""The output contract, restated here (not imported from the code)."""
+
+from __future__ import annotations
+
+# trees.csv columns as docs/architecture.md fixes them (restated here, not imported from the code).
+CONTRACT_CSV_COLUMNS = [
+    "tree_id",
+    "field_id",
+    "row",
+    "easting",
+    "northing",
+    "utm_zone",
+    "lat",
+    "lon",
+    "width_m",
+    "height_m",
+    "ndvi",
+    "observations",
+    "first_seen",
+    "last_seen",
+    "status",  # appended after the contract's fourteen: found or missing
+    "height_top_seen",  # appended: true, false (height a lower bound) or empty
+]

@@ -1,0 +1,321 @@
+"""TreeMapper end to end on the digital twin: VLP-16 packets emulated along a path through
+an orchard of known trees, decoded by our batcher, a Survey3N frame rendered per scan,
+and exact poses from the path in `odom`. Every tree must be found once, where it stands,
+with foliage NDVI; and the edge cases: first tree, one tree, touching crowns, nothing
+but ground, an empty scan, no frame, no pose, a heading other than east."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from tests.helpers.twin import drive, grid_drive, mapped, match
+from treetraits.drivers.calibration import Calibration
+from treetraits.drivers.records import POINT_DTYPE
+from treetraits.pipeline.config import MapperConfig, TraitsConfig
+from treetraits.pipeline.mapper import TreeMapper, trunk_position
+from treetraits.pipeline.tracking import Motion
+from treetraits.sim.camera import FOLIAGE
+from treetraits.sim.orchard import (
+    TreeSpec,
+    grid_orchard,
+)
+
+
+def assert_each_found_once(trees, truth, reach=None):
+    """No strays; every true tree found exactly once (those farther than `reach` m from
+    the path's end, never in the crop box, at most once). Counted: what the outputs call
+    trees (kind "tree"); a fragment judged a post for a scan is a rejected object."""
+    found, stray = match([t for t in trees if t.kind == "tree"], truth)
+    assert stray == []
+    for t in truth:
+        count = len(found[t.tree_id])
+        assert count <= 1, t.tree_id
+        if reach is None or math.hypot(t.x - reach[0], t.y - reach[1]) < reach[2]:
+            assert count == 1, t.tree_id
+
+
+def ndvi_of(bands) -> float:
+    red, _, nir = bands
+    return (nir - red) / (nir + red)
+
+
+# --- the straight drive past the 2 x 3 grid --------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["paper", "robust"])
+def test_every_tree_is_found_once_where_it_stands(method):
+    data = grid_drive()
+    assert len(data.scans) >= 195  # ~20 s at 10 Hz
+    mapper, _ = mapped(method)
+    trees = mapper.trees()
+    found, stray = match(trees, data.truth)
+    assert stray == []
+    assert {k: len(v) for k, v in found.items()} == {t.tree_id: 1 for t in data.truth}
+    # Position: both methods report the centre of the accumulated crown outline (the
+    # paper's looser limit dates from when it reported the Kalman state, the centroid of
+    # the visible near face).
+    limit = {"paper": 0.8, "robust": 0.6}[method]
+    for truth in data.truth:
+        tree = found[truth.tree_id][0]
+        assert math.hypot(tree.x - truth.x, tree.y - truth.y) < limit, truth.tree_id
+        assert tree.frame == "odom" and tree.traits == method
+        assert tree.observations > 100
+        assert data.poses[0].t <= tree.first_seen < tree.last_seen <= data.poses[-1].t
+
+
+def test_trees_carry_the_ndvi_of_foliage():
+    mapper, results = mapped("paper")
+    foliage = ndvi_of(FOLIAGE)
+    assert all(r.ndvi == "ok" for r in results)
+    found, _ = match(mapper.trees(), grid_drive().truth)
+    for truth in grid_drive().truth:
+        (tree,) = found[truth.tree_id]
+        if truth.x < 7:  # front and middle: seen whole, near
+            assert tree.ndvi == pytest.approx(foliage, abs=0.04)
+        else:  # back: seen past the middle crowns, its outline mixes in soil and sky
+            assert 0.55 < tree.ndvi < foliage
+    with_ndvi = [c for r in results for c in r.clusters if np.isfinite(c.ndvi)]
+    assert len(with_ndvi) > 300  # the camera sees forward: clusters ahead have NDVI
+
+
+def test_scan_results_tell_what_happened_to_each_cluster():
+    _, results = mapped("paper")
+    first = results[0]
+    assert first.frame == "odom" and first.ground.fitted
+    # The first trees (nothing to compare with); a piece of a crown split off by the
+    # clustering starts a tree that the merge folds into its own at once.
+    assert {c.outcome for c in first.clusters} <= {"created", "merged"}
+    assert all(math.isnan(c.p_max) for c in first.clusters)
+    assert first.created == [c.tree_id for c in first.clusters if c.outcome == "created"]
+    assert len(first.created) >= 4
+    later = results[100]
+    assert later.updated and all(c.tree_id is not None for c in later.clusters)
+    for c in later.clusters:
+        if c.outcome == "updated":
+            assert c.p_max > 0.5 and c.entropy < 0.8
+        assert c.hull_volume > 0 and c.num_points >= 10
+    # Many tree clusters fail the paper's gate (a 7 % change in the count of points is
+    # enough) and start a tree that the merge folds back at once (docs): measured 410
+    # merged against 560 updated since the understorey is cut off the crowns (a third
+    # before), and the understorey's own pieces (low) are merged into their tree.
+    outcomes = [c.outcome for r in results for c in r.clusters]
+    crowns = [c.outcome for r in results for c in r.clusters if c.cluster.verdict == "tree"]
+    assert crowns.count("updated") > 1.2 * crowns.count("merged")
+    assert outcomes.count("created") < 20
+    known = {t.tree_id for t in mapped("paper")[0].trees()}
+    ids = {c.tree_id for r in results for c in r.clusters if c.outcome != "duplicate"}
+    assert known <= ids
+    for r in results:  # every id a scan reports exists after that scan (merges resolved)
+        assert set(r.created) | set(r.updated) >= {c.tree_id for c in r.clusters}
+    # Centroids are reported in odom: each lies within a crown of a true tree.
+    truth = grid_drive().truth
+    for r in results[::20]:
+        for c in r.clusters:
+            gap = min(math.hypot(c.centroid[0] - t.x, c.centroid[1] - t.y) for t in truth)
+            assert gap < 1.6
+
+
+def test_same_input_same_output():
+    data = grid_drive()
+
+    def run():
+        mapper = TreeMapper(MapperConfig(), data.calibration)
+        for s, f, p in zip(data.scans[:40], data.frames[:40], data.poses[:40], strict=True):
+            mapper.process(s, f, p)
+        return mapper.trees()
+
+    assert run() == run()
+
+
+def test_without_a_camera_the_same_trees_without_ndvi():
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    results = [mapper.process(s, None, p) for s, p in zip(data.scans, data.poses, strict=True)]
+    assert {r.ndvi for r in results} == {"no_frame"}
+    found, stray = match(mapper.trees(), data.truth)
+    assert stray == [] and all(len(v) == 1 for v in found.values())
+    assert all(t.ndvi is None for t in mapper.trees())
+    # A frame given to a mapper whose calibration has no camera is set aside, not fatal.
+    blind = TreeMapper(MapperConfig(), Calibration())
+    assert blind.process(data.scans[0], data.frames[0], data.poses[0]).ndvi == "no_camera"
+
+
+@pytest.mark.parametrize("motion", [None, Motion(0.5, 0.0)])
+def test_without_poses_trees_are_held_in_the_lidar_frame(motion):
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    for scan in data.scans[:80]:
+        result = mapper.process(scan, None, None, motion=motion)
+    assert result.frame == "lidar"
+    trees = mapper.trees()
+    assert all(t.frame == "lidar" for t in trees)
+    # Positions are in the last scan's LiDAR frame: put them in odom to compare.
+    pose, lidar = data.poses[79], data.calibration.T_base_lidar[:3, 3]
+    in_odom = [dataclasses.replace(t, x=t.x + pose.x + lidar[0], y=t.y + pose.y) for t in trees]
+    assert_each_found_once(in_odom, data.truth, reach=(pose.x, pose.y, 14.0))
+    assert len(in_odom) >= 4
+
+
+def test_robust_traits_without_poses_follow_the_motion():
+    """Without poses the robust traits accumulate where the motion says the first scan's
+    LiDAR frame is: with the drive's true motion they match the run with poses."""
+    data = grid_drive()
+    config = MapperConfig(traits=TraitsConfig(method="robust"))
+    with_poses = TreeMapper(config, data.calibration)
+    dead_reckoned = TreeMapper(config, data.calibration)
+    for scan, pose in zip(data.scans[:80], data.poses[:80], strict=True):
+        with_poses.process(scan, None, pose)
+        dead_reckoned.process(scan, None, None, motion=Motion(0.5, 0.0))
+    pose, lidar = data.poses[79], data.calibration.T_base_lidar[:3, 3]
+    for a, b in zip(with_poses.trees(), dead_reckoned.trees(), strict=True):
+        assert b.width_m == pytest.approx(a.width_m, rel=0.03)
+        assert b.height_m == pytest.approx(a.height_m, abs=0.05)
+        assert b.x + pose.x + lidar[0] == pytest.approx(a.x, abs=0.1)
+        assert b.y + pose.y == pytest.approx(a.y, abs=0.1)
+
+
+def test_a_run_keeps_one_frame():
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    mapper.process(data.scans[0], None, data.poses[0])
+    with pytest.raises(ValueError, match="odom"):
+        mapper.process(data.scans[1], None, dataclasses.replace(data.poses[1], frame="utm"))
+    with pytest.raises(ValueError, match="no pose"):
+        mapper.process(data.scans[1], None, None)
+
+
+def test_heading_north_maps_the_same_trees():
+    """The grid turned by 90 deg and driven north (yaw = pi/2): a wrong rotation would
+    put every tree on the wrong side of the path."""
+    specs = [
+        dataclasses.replace(s, x=s.y, y=s.x)
+        for s in grid_orchard(2, 3, 5.0, 5.0, np.random.default_rng(1))
+    ]
+    data = drive(specs, start=(2.5, -9.5), heading=math.pi / 2, speed=0.5, seconds=8.0, seed=5)
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    for scan, pose in zip(data.scans, data.poses, strict=True):
+        mapper.process(scan, None, pose)
+    last = data.poses[-1]
+    assert_each_found_once(mapper.trees(), data.truth, reach=(last.x, last.y, 14.0))
+    assert len(mapper.trees()) >= 4
+
+
+# --- edge cases -------------------------------------------------------------------------
+
+
+def test_one_tree_is_one_tree_from_the_first_scan():
+    spec = TreeSpec("T1", "1", 5.0, 2.5, 0.45, 0.08, 1.35, 1.1)
+    data = drive([spec], start=(0.0, 0.0), heading=0.0, speed=0.0, seconds=1.0, seed=3)
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    results = [mapper.process(s, None, p) for s, p in zip(data.scans, data.poses, strict=True)]
+    assert [c.outcome for c in results[0].clusters] == ["created"]
+    assert all([c.outcome for c in r.clusters] == ["updated"] for r in results[1:])
+    (tree,) = mapper.trees()
+    assert tree.tree_id == 1 and tree.observations == len(data.scans) >= 8
+    assert math.hypot(tree.x - 5.0, tree.y - 2.5) < 1.35
+
+
+def test_touching_crowns_are_cut_at_their_trunks_and_crowns_apart_are_two():
+    """Two crowns that touch (2.7 m apart, the width of each) are one Euclidean cluster;
+    the cut at the trunks (`detection.split_at_trunks`) makes them two trees again, each
+    about as wide as it is. A gap wider than the tolerance gives two clusters anyway.
+    Seen from 4 m beside the pair."""
+    for gap in (0.0, 0.8):
+        specs = [
+            TreeSpec("A", "1", -1.35 - gap / 2, 0.0, 0.45, 0.08, 1.35, 1.1),
+            TreeSpec("B", "1", 1.35 + gap / 2, 0.0, 0.45, 0.08, 1.35, 1.1),
+        ]
+        data = drive(specs, start=(0.0, 4.0), heading=0.0, speed=0.0, seconds=1.0, seed=9)
+        mapper = TreeMapper(MapperConfig(), data.calibration)
+        for scan, pose in zip(data.scans, data.poses, strict=True):
+            mapper.process(scan, None, pose)
+        trees = mapper.trees()
+        found, stray = match(trees, data.truth)
+        assert stray == [] and all(len(v) == 1 for v in found.values()), gap
+        for truth in data.truth:
+            # Touching: each piece ends where the other tree's begins (the Voronoi cut
+            # between the trunks), so a crown's overlap with its neighbour is lost.
+            tolerance = 0.06 if gap else 0.15
+            assert found[truth.tree_id][0].width_m == pytest.approx(truth.width, rel=tolerance)
+
+
+def test_an_empty_scan_and_a_ground_only_scan_change_nothing():
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    mapper.process(data.scans[0], data.frames[0], data.poses[0])
+    before = mapper.trees()
+    empty = dataclasses.replace(data.scans[1], points=np.zeros(0, POINT_DTYPE))
+    result = mapper.process(empty, data.frames[1], data.poses[1])
+    assert result.clusters == [] and result.counts["points"] == 0
+    points = data.scans[2].points
+    ground_only = dataclasses.replace(data.scans[2], points=points[points["z"] < -0.25])
+    result = mapper.process(ground_only, data.frames[2], data.poses[2])
+    assert result.clusters == [] and result.counts["cropped"] > 1000
+    # All ground, but for a few green-looking points under crowns: skirt candidates that
+    # touch no cluster and are dropped.
+    assert result.counts["ground"] + result.counts["skirt"] == result.counts["cropped"]
+    assert mapper.trees() == before
+
+
+def test_a_mapper_without_scans_has_no_trees():
+    assert TreeMapper().trees() == []
+
+
+def test_scans_taken_while_turning_fast_add_nothing_to_the_outline():
+    """The same scans and positions, but poses whose heading swings by 0.1 rad from one
+    scan to the next (1 rad/s, the paper's turn rate; above traits.max_yaw_rate): the
+    robust outline takes none of them but the first (no yaw rate yet), too few for a cell
+    to count (no width), while with the true, steady headings every tree gets one.
+    Tracking is not touched: the trees are found either way."""
+    data = grid_drive()
+    config = MapperConfig(traits=TraitsConfig(method="robust"))
+    steady, turning = TreeMapper(config, data.calibration), TreeMapper(config, data.calibration)
+    for k, (scan, pose) in enumerate(zip(data.scans[:40], data.poses[:40], strict=True)):
+        steady.process(scan, None, pose)
+        swung = dataclasses.replace(pose, yaw=pose.yaw + (0.05 if k % 2 else -0.05))
+        turning.process(scan, None, swung)
+    # Trees, not the understorey's objects: with headings swinging, a low piece under a
+    # crown can land a scan away from its tree and stand alone (it is listed, `low`).
+    steady_trees = [t for t in steady.trees() if t.kind == "tree"]
+    turning_trees = [t for t in turning.trees() if t.kind == "tree"]
+    assert len(steady_trees) >= 2 and len(turning_trees) == len(steady_trees)
+    assert all(math.isfinite(t.width_m) for t in steady_trees)
+    assert all(math.isnan(t.width_m) for t in turning_trees)
+
+
+def test_a_tree_stands_where_most_of_its_trunk_sightings_agree():
+    """`trunk_position`: the sightings that agree within `trunk_agree_m` of the best
+    supported place, when they are enough, a majority, a share of the tree's scans, and
+    under its crown; a weed clump or a neighbour's trunk taken for the trunk now and then
+    does not move the tree."""
+    config = TraitsConfig()  # 3 sightings, 0.25 m, 5 % of the scans, half the width
+    rng = np.random.default_rng(1)
+    trunk = np.array([10.0, -4.0])
+
+    def seen(place, n):
+        return [tuple(np.array(place) + rng.normal(0, 0.03, 2)) for _ in range(n)]
+
+    sightings = seen(trunk, 20)
+    weed = seen((10.6, -3.7), 8)
+    found = trunk_position(sightings + weed, config, scans=100)
+    assert np.hypot(*(found - trunk)) < 0.03
+    assert np.hypot(*(found - trunk)) < np.hypot(*(np.mean(sightings + weed, axis=0) - trunk))
+    assert trunk_position(sightings[:2], config) is None  # too few: the outline stands in
+    # No majority: as many sightings elsewhere as at the best place.
+    assert trunk_position(sightings[:8] + weed, config) is None
+    # A place sighted in 20 of 1000 scans (2 %) is a clump glimpsed now and then.
+    assert trunk_position(sightings, config, scans=1000) is None
+    assert trunk_position(sightings, dataclasses.replace(config, trunk_min_scans=0)) is None
+    # A weed clump past the crown's edge (1.5 m from a centre 0.1 m off the trunk, the
+    # crown 2.8 m wide), seen more often than the trunk, is no trunk.
+    edge = seen((11.5, -4.2), 30)
+    crown = trunk + np.array([0.1, 0.0])
+    assert np.hypot(*(trunk_position(sightings + edge, config) - (11.5, -4.2))) < 0.03
+    assert trunk_position(sightings + edge, config, 100, crown, 2.8) is None
+    # Hundreds of sightings (a tree seen for minutes): the same place.
+    many = seen(trunk, 600)
+    assert np.hypot(*(trunk_position(many, config, 1000, crown, 2.8) - trunk)) < 0.01
