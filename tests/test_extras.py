@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers.net import free_udp_port
+from tests.helpers.service import Service
 from treetraits.errors import EXIT_USAGE
 from treetraits.extras import EXTRA_MODULES
 
@@ -18,11 +20,14 @@ BLOCKER = """
 import sys
 
 HIDDEN = {hidden!r}
+TRIED = {tried!r}
 
 
 class _Hidden:
     def find_spec(self, name, path=None, target=None):
         if any(name == h or name.startswith(h + ".") for h in HIDDEN):
+            with open(TRIED, "a") as log:  # an import caught and ignored shows here too
+                log.write(name + "\\n")
             raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
         return None
 
@@ -33,10 +38,12 @@ HIDDEN = tuple(sorted({m for modules in EXTRA_MODULES.values() for m in modules}
 
 
 def without_extras(tmp_path: Path) -> dict[str, str]:
-    """An environment whose interpreters cannot import any extra's module."""
+    """An environment whose interpreters cannot import any extra's module; the names they
+    tried are in `site/tried.txt`."""
     site = tmp_path / "site"
     site.mkdir(exist_ok=True)
-    (site / "sitecustomize.py").write_text(BLOCKER.format(hidden=HIDDEN))
+    tried = site / "tried.txt"
+    (site / "sitecustomize.py").write_text(BLOCKER.format(hidden=HIDDEN, tried=str(tried)))
     return dict(os.environ, PYTHONPATH=str(site))
 
 
@@ -95,3 +102,29 @@ def test_the_service_commands_work_without_the_extras(tmp_path):
     checked = treetraits(env, "config", "check", str(config), cwd=tmp_path)
     assert checked.returncode == 0, checked.stderr
     assert checked.stdout.startswith(f"{config}: ok")
+
+
+def tried_imports(tmp_path: Path) -> list[str]:
+    tried = tmp_path / "site" / "tried.txt"
+    return tried.read_text().split() if tried.exists() else []
+
+
+def test_the_service_starts_and_stops_without_the_extras(tmp_path):
+    """The robot's install: `run` gets to READY=1 and stops cleanly on SIGTERM, and no
+    extra's module was so much as tried."""
+    config = tmp_path / "config.toml"
+    config.write_text(
+        f'[output]\ndir = "{tmp_path / "out"}"\n'
+        f'[lidar]\nbind = "127.0.0.1"\ndata_port = {free_udp_port()}\n'
+        f"telemetry_port = {free_udp_port()}\n"
+        "[camera]\nenabled = false\n[gnss]\nenabled = false\n[wheels]\nenabled = false\n"
+    )
+    service = Service(tmp_path, config, env=without_extras(tmp_path))
+    try:
+        service.wait_ready()
+        code, _ = service.terminate()
+    finally:
+        service.close()
+    assert code == 0, service.stderr()
+    assert tried_imports(tmp_path) == []
+    assert (tmp_path / "out" / "runs" / "latest" / "traits.sqlite").exists()

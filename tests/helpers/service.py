@@ -20,7 +20,14 @@ START_S = 90  # imports (open3d, OpenCV) on a loaded 2-core machine
 class Service:
     """The service subprocess and what it sent to its NOTIFY_SOCKET."""
 
-    def __init__(self, folder: Path, config: Path, *args: str, preexec_fn=None):
+    def __init__(
+        self,
+        folder: Path,
+        config: Path,
+        *args: str,
+        preexec_fn=None,
+        env: dict[str, str] | None = None,
+    ):
         self.socket_path = folder / f"notify-{time.monotonic_ns()}.sock"
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.bind(str(self.socket_path))
@@ -28,7 +35,7 @@ class Service:
         self.messages: list[str] = []
         self._lock = threading.Lock()
         self._done = threading.Event()
-        env = dict(os.environ, NOTIFY_SOCKET=str(self.socket_path), WATCHDOG_USEC="2000000")
+        env = dict(env or os.environ, NOTIFY_SOCKET=str(self.socket_path), WATCHDOG_USEC="2000000")
         env.pop("INVOCATION_ID", None)
         env.pop("JOURNAL_STREAM", None)
         self.stderr_path = folder / f"stderr-{time.monotonic_ns()}.log"
