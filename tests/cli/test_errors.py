@@ -19,6 +19,7 @@ import pytest
 
 from tests.helpers.captures import VLP16_DIR
 from tests.helpers.paths import REPO
+from tests.helpers.surveys import twin_survey
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
@@ -26,14 +27,13 @@ from treetraits.errors import EXIT_INTERRUPTED, EXIT_IO, EXIT_TERMINATED, EXIT_U
 from treetraits.service.config import ServiceConfig
 from treetraits.service.outputs import OutputError, RunWriter
 from treetraits.service.survey import make_processor
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
     # Two trees, 3 m driven, camera frames included: a real recording in a few seconds.
-    out = tmp_path_factory.mktemp("survey") / "small.mcap"
-    return simulate_survey(out, SurveySettings(columns=2, rows=1, goal=3.0, seed=0))
+    return twin_survey(SurveySettings(columns=2, rows=1, goal=3.0, seed=0))
 
 
 # 130, or killed by SIGINT (-2 to Popen; a shell shows 130 too): CPython ends itself with

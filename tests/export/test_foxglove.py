@@ -18,12 +18,13 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from tests.helpers.captures import decode_file
+from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import load_calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 CLI = [sys.executable, "-m", "treetraits"]
 EXPECTED_SCHEMAS = {
@@ -81,7 +82,7 @@ def read_view(path: Path) -> dict[str, list]:
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
     root = tmp_path_factory.mktemp("foxglove")
-    twin = simulate_survey(root / "twin.mcap", SurveySettings(seed=2, goal=8.0))
+    twin = twin_survey(SurveySettings(seed=2, goal=8.0))
     run = root / "run"
     replay = cli("replay", str(twin.recording), "--out", str(run), "--json")
     assert replay.returncode == 0, replay.stderr

@@ -23,10 +23,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.helpers.surveys import twin_survey
 from treetraits.cli import main
 from treetraits.pipeline.linking import link_surveys
 from treetraits.season.store import SeasonStore
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 # Three drives of a 2x2 block (5 m spacing), 10 m each: a few seconds of data, the
 # GNSS noise of each drive its own (another seed).
@@ -35,12 +36,8 @@ SEEDS = (1, 2, 3)
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory) -> list[Path]:
-    folder = tmp_path_factory.mktemp("season")
     settings = SurveySettings(columns=2, rows=2, goal=10.0)
-    return [
-        simulate_survey(folder / f"drive{seed}.mcap", replace(settings, seed=seed)).recording
-        for seed in SEEDS
-    ]
+    return [twin_survey(replace(settings, seed=seed)).recording for seed in SEEDS]
 
 
 @pytest.fixture(scope="module")

@@ -264,7 +264,8 @@ def test_cli_json_and_exit_codes(tmp_path, pty_port, capsys):
     config = tmp_path / "config.toml"
     config.write_text(
         f'[output]\ndir = "{tmp_path}"\n'
-        f'[lidar]\nbind = "127.0.0.1"\ndata_port = {port}\nrcvbuf_bytes = 65536\n'
+        f'[lidar]\nbind = "127.0.0.1"\ndata_port = {port}\ntelemetry_port = 0\n'
+        "rcvbuf_bytes = 65536\n"
         "[camera]\nenabled = false\n"
         f'[gnss]\nport = "{pty_port}"\n'
         f'[wheels]\nport = "{tmp_path / "jackal"}"\n'

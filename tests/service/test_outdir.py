@@ -11,10 +11,11 @@ from pathlib import Path
 import pytest
 
 from tests.helpers.captures import VLP16_DIR
+from tests.helpers.surveys import twin_survey
 from treetraits.cli import main
 from treetraits.errors import EXIT_OUTPUT_BUSY, EXIT_OUTPUT_EXISTS, EXIT_USAGE
 from treetraits.service.outdir import OutputDir
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 CAPTURE = VLP16_DIR / "lidarutils_vlp16_strongest_0x22.pcap"
 REPLAY_FILES = ("traits.sqlite", "trees.csv", "trees.geojson", "rejected.geojson")
@@ -23,8 +24,7 @@ REPLAY_FILES = ("traits.sqlite", "trees.csv", "trees.geojson", "rejected.geojson
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
     # Two trees, 3 m driven: a real recording in a few seconds.
-    out = tmp_path_factory.mktemp("survey") / "small.mcap"
-    return simulate_survey(out, SurveySettings(columns=2, rows=1, goal=3.0, seed=0))
+    return twin_survey(SurveySettings(columns=2, rows=1, goal=3.0, seed=0))
 
 
 @pytest.fixture(scope="module")

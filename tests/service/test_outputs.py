@@ -10,6 +10,7 @@ import sqlite3
 import numpy as np
 import pytest
 
+from tests.helpers.surveys import twin_survey
 from tests.helpers.twin import grid_drive
 from treetraits.drivers.records import POINT_DTYPE
 from treetraits.errors import ConfigError
@@ -138,7 +139,7 @@ def test_missing_trees_taken_in_piece_by_piece_are_those_of_the_whole_path(tmp_p
     from treetraits.service.survey import make_processor
     from treetraits.sim.gnss import GnssSettings
     from treetraits.sim.orchard import TreeSettings
-    from treetraits.sim.run import SurveySettings, simulate_survey
+    from treetraits.sim.run import SurveySettings
 
     settings = SurveySettings(
         path="straight",
@@ -148,7 +149,7 @@ def test_missing_trees_taken_in_piece_by_piece_are_those_of_the_whole_path(tmp_p
         # Longer than the 10 s scans wait for a first fix: the run maps in odom first.
         gnss=GnssSettings(outages=((0.0, 13.0),)),
     )
-    result = simulate_survey(tmp_path / "late.mcap", settings)
+    result = twin_survey(settings)
     with rec.read_recording(result.recording) as recording:
         calibration = load_calibration(recording.metadata.calibration)
         messages = [(m.topic, bytes(m.data), m.log_time, m.publish_time) for m in recording]

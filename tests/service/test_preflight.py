@@ -21,11 +21,13 @@ START_S = 120  # imports on a loaded 2-core machine
 
 def write_config(folder: Path, *, lidar: str = "", pipeline: str = "", camera: str = "") -> Path:
     """Only the LiDAR on loopback (the one device a start opens for good), outputs in
-    `folder/out`."""
+    `folder/out`. The telemetry port stays closed: a fixed port would clash between tests
+    running side by side."""
+    default_lidar = f"data_port = {free_udp_port()}\ntelemetry_port = 0"
     text = (
         f'[output]\ndir = "{folder / "out"}"\n'
         f"[pipeline]\n{pipeline}\n"
-        f'[lidar]\nbind = "127.0.0.1"\n{lidar or f"data_port = {free_udp_port()}"}\n'
+        f'[lidar]\nbind = "127.0.0.1"\n{lidar or default_lidar}\n'
         f"[camera]\nenabled = {'true' if camera else 'false'}\n{camera}\n"
         "[gnss]\nenabled = false\n[wheels]\nenabled = false\n"
     )

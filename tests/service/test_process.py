@@ -29,16 +29,17 @@ import pytest
 from tests.helpers.net import free_udp_port
 from tests.helpers.paths import REPO
 from tests.helpers.service import START_S, Service
+from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
 from treetraits.sim.player import RecordingPlayer, write_camera_video
-from treetraits.sim.run import LATENCY_NS, SurveySettings, simulate_survey
+from treetraits.sim.run import LATENCY_NS, SurveySettings
 
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
     """A 10 s drive past the paper's 2x3 grid, its calibration, field map and video."""
     folder = tmp_path_factory.mktemp("service-survey")
-    result = simulate_survey(folder / "survey.mcap", SurveySettings(seed=0, goal=5.0))
+    result = twin_survey(SurveySettings(seed=0, goal=5.0), into=folder)
     with rec.read_recording(result.recording) as recording:
         calibration = recording.metadata.calibration
     (folder / "calibration.json").write_text(json.dumps(calibration))

@@ -13,20 +13,20 @@ import pytest
 
 from tests.helpers.contract import CONTRACT_CSV_COLUMNS
 from tests.helpers.paths import FIXTURES
+from tests.helpers.surveys import twin_survey
 from treetraits.cli import main
 from treetraits.evaluation.cases import CASES
 from treetraits.service.config import ServiceConfig, with_method
 from treetraits.service.replay import ReplayOptions, run_replay
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.orchard import TreeSettings
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
-    out = tmp_path_factory.mktemp("survey") / "survey.mcap"
     # The paper's straight case: 2x3 trees 5 m apart, 23 m driven.
-    return simulate_survey(out, SurveySettings(seed=0))
+    return twin_survey(SurveySettings(seed=0))
 
 
 def truth_rows(survey):
@@ -173,9 +173,7 @@ def test_a_run_without_gnss_maps_in_odom(tmp_path):
     """No fix at all: after DATUM_WAIT_NS the run maps in odom; trees are still found and
     reported, without a UTM position or a field-map match."""
     gnss = GnssSettings(outages=((0.0, 1e6),))
-    survey = simulate_survey(
-        tmp_path / "denied.mcap", SurveySettings(rows=2, goal=10.0, seed=1, gnss=gnss)
-    )
+    survey = twin_survey(SurveySettings(rows=2, goal=10.0, seed=1, gnss=gnss))
     report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
     assert report.summary["world_frame"] == "odom" and report.summary["fixes"] == 0
     assert len(report.trees) == 4
@@ -190,7 +188,7 @@ def test_a_field_map_tree_passed_and_not_found_is_missing(tmp_path):
     position, no traits) in trees.csv, trees.geojson and the store; the four others are
     found, and nothing is both."""
     settings = SurveySettings(seed=3, goal=12.0, trees=TreeSettings(missing=2))
-    survey = simulate_survey(tmp_path / "survey.mcap", settings)
+    survey = twin_survey(settings)
     with open(survey.truth_csv) as f:
         absent = {r["tree_id"] for r in csv.DictReader(f) if r["kind"] == "missing"}
     assert len(absent) == 2
@@ -230,7 +228,7 @@ def test_a_turned_block_with_the_antenna_off_centre_maps_in_place(tmp_path):
         field_heading_deg=112.0,
         antenna=(-1.0, -0.6, 0.5),
     )
-    survey = simulate_survey(tmp_path / "turned.mcap", settings)
+    survey = twin_survey(settings)
     report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
     truth = truth_rows(survey)
     assert sorted(t.field_id for t in report.trees) == sorted(truth)
@@ -279,7 +277,7 @@ def test_a_late_first_fix_moves_the_whole_map_to_utm(tmp_path):
     the 10 s wait, then moves its whole map to UTM when the fix and a heading come. Every
     tree is placed and matched once, the ones mapped before the fix included."""
     gnss = GnssSettings(outages=((0.0, 14.0),))
-    survey = simulate_survey(tmp_path / "late.mcap", SurveySettings(goal=16.0, seed=4, gnss=gnss))
+    survey = twin_survey(SurveySettings(goal=16.0, seed=4, gnss=gnss))
     report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
     assert report.summary["world_frame"] == "utm"
     assert report.summary["reanchored_at"] is not None
@@ -305,7 +303,7 @@ def test_old_trees_seen_from_both_lanes_are_one_tree_each(tmp_path):
         seed=3,
         trees=TreeSettings(old_fraction=1.0),
     )
-    survey = simulate_survey(tmp_path / "old.mcap", settings)
+    survey = twin_survey(settings)
     report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
     truth = truth_rows(survey)
     assert sorted(t.field_id for t in report.trees) == sorted(truth)  # each once
@@ -326,7 +324,7 @@ def test_a_hedgerow_seen_through_from_the_lane_gives_no_crown_fragments(tmp_path
     where the crown outline's centre was 0.11-0.36 m off (the touching crowns are cut
     at their trunks, the outline of each is the piece the lane sees)."""
     (case,) = [c for c in CASES if c.name == "field-hedgerow"]
-    survey = simulate_survey(tmp_path / "hedgerow.mcap", case.settings(7))
+    survey = twin_survey(case.settings(7))
     report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
     truth = truth_rows(survey)
     assert len(report.trees) == len(truth) == 10

@@ -11,18 +11,18 @@ import sqlite3
 import pytest
 
 from tests.helpers.recordings import chunk_spans
+from tests.helpers.surveys import twin_survey
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
 from treetraits.drivers.recording.rotation import RotatingRecorder
 from treetraits.errors import EXIT_DATA_LOSS
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
     # Two trees, 3 m driven: about 60 scans in some 25 chunks of 256 KiB.
-    out = tmp_path_factory.mktemp("damage") / "survey.mcap"
-    return simulate_survey(out, SurveySettings(columns=2, rows=1, goal=3.0, seed=0))
+    return twin_survey(SurveySettings(columns=2, rows=1, goal=3.0, seed=0))
 
 
 def replay(path, out, capsys, *options) -> tuple[int, dict, str]:

@@ -11,6 +11,7 @@ import statistics
 import numpy as np
 import pytest
 
+from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import load_calibration
 from treetraits.pipeline.projection import scan_mid_time
@@ -18,17 +19,16 @@ from treetraits.service.config import ServiceConfig
 from treetraits.service.survey import POSE_WAIT_NS, make_processor
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.paths import drive, riding_trajectory, waypoints
-from treetraits.sim.run import DEFAULT_CALIBRATION, SurveySettings, make_ground, simulate_survey
+from treetraits.sim.run import DEFAULT_CALIBRATION, SurveySettings, make_ground
 from treetraits.sim.wheels import JackalMcuEmulator, WheelSettings, imu_truth
 
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
-    out = tmp_path_factory.mktemp("survey") / "survey.mcap"
     # 8 m at 0.5 m/s: about 17 s, well inside the localizer's 30 s history. A dual-antenna
     # receiver (HDT), so the heading is known without the wheels too.
     settings = SurveySettings(goal=8.0, rows=2, seed=2, gnss=GnssSettings(dual_antenna=True))
-    return simulate_survey(out, settings)
+    return twin_survey(settings)
 
 
 def messages(survey, without=()):

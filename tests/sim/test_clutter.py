@@ -12,11 +12,12 @@ import math
 import numpy as np
 import pytest
 
+from tests.helpers.surveys import twin_survey
 from treetraits.cli import main
 from treetraits.sim.clutter import KINDS, ClutterSettings
 from treetraits.sim.orchard import TreeSettings
 from treetraits.sim.paths import drive, waypoints
-from treetraits.sim.run import SurveySettings, build_world, simulate_survey
+from treetraits.sim.run import SurveySettings, build_world
 
 EVERYTHING = ClutterSettings(
     weeds=40,
@@ -132,7 +133,7 @@ def test_objects_and_missing_trees_in_the_files_beside_the_recording(tmp_path):
         trees=TreeSettings(missing=1),
         clutter=dataclasses.replace(EVERYTHING, weeds=10, drip_lines="hung"),
     )
-    survey = simulate_survey(tmp_path / "c.mcap", settings)
+    survey = twin_survey(settings)
     with open(survey.objects_csv) as f:
         objects = list(csv.DictReader(f))
     assert {o["kind"] for o in objects} == set(KINDS)

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
 from treetraits.drivers.camera.replay import VideoFileSource
 from treetraits.drivers.gnss.sources import SerialSource
@@ -24,7 +25,7 @@ from treetraits.errors import SourceError
 from treetraits.firmware_bridge.jackal import rosserial as rs
 from treetraits.firmware_bridge.jackal.session import JackalSession, decode_stream
 from treetraits.sim.player import RecordingPlayer, write_camera_video
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 SPEED = 2.0
 
@@ -32,8 +33,7 @@ SPEED = 2.0
 @pytest.fixture(scope="session")
 def short_survey(tmp_path_factory):
     """A 3 s simulated survey: one tree row, 1.5 m ahead."""
-    out = tmp_path_factory.mktemp("player") / "short.mcap"
-    return simulate_survey(out, SurveySettings(goal=1.5, rows=1, seed=3))
+    return twin_survey(SurveySettings(goal=1.5, rows=1, seed=3))
 
 
 def recorded(path, topic) -> list[rec.RecordedMessage]:

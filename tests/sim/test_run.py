@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from tests.helpers.paths import FIXTURES
+from tests.helpers.surveys import twin_survey
 from treetraits.cli import main
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import load_calibration
@@ -35,7 +36,6 @@ from treetraits.sim.run import (
     START_UTC,
     SurveySettings,
     placement,
-    simulate_survey,
 )
 
 SETTINGS = SurveySettings(
@@ -45,7 +45,7 @@ SETTINGS = SurveySettings(
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory):
-    return simulate_survey(tmp_path_factory.mktemp("sim") / "survey.mcap", SETTINGS)
+    return twin_survey(SETTINGS)
 
 
 def test_every_channel_is_there_at_its_rate(survey):
@@ -150,7 +150,7 @@ def test_a_turned_field_and_any_lever_arm_leave_no_offset(
         antenna=antenna,
         gnss=dataclasses.replace(GnssSettings(), dual_antenna=dual_antenna),
     )
-    survey = simulate_survey(tmp_path / "turned.mcap", settings)
+    survey = twin_survey(settings)
     errors = fused_pose_errors(survey, settings)
     assert len(errors) >= 20
     # Measured: medians 2-3 cm, at most 5 cm, with and without a true heading (without
@@ -206,7 +206,7 @@ def test_a_gps_locked_lidar_puts_the_fixes_on_a_host_clock_off_utc(tmp_path):
         host_clock_offset_s=host_ahead_s,
         lidar=dataclasses.replace(LidarSettings(), gps_sync=True),
     )
-    survey = simulate_survey(tmp_path / "locked.mcap", settings)
+    survey = twin_survey(settings)
     assert survey.counts[rec.LIDAR_TELEMETRY] == pytest.approx(
         survey.counts[rec.LIDAR_PACKETS] / 14, abs=1
     )

@@ -27,6 +27,7 @@ from tests.helpers.rosbag import (
     typestore,
     write_ros1,
 )
+from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import load_calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
@@ -37,7 +38,7 @@ from treetraits.drivers.rosbag.topics import CITRUSFARM_T_BASE_IMU
 from treetraits.firmware_bridge.jackal.records import JackalImu
 from treetraits.firmware_bridge.jackal.session import JackalProtocol
 from treetraits.pipeline.projection import scan_mid_time
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 FLOAT32, UINT16 = 7, 4
 # CitrusFarm's /velodyne_points: x y z intensity ring (no time).
@@ -136,7 +137,7 @@ def trees(run: Path) -> list[dict]:
 
 
 def test_a_citrusfarm_shaped_ros1_survey_replays_to_the_twins_trees(tmp_path):
-    twin = simulate_survey(tmp_path / "twin.mcap", SurveySettings(seed=2, goal=12.0))
+    twin = twin_survey(SurveySettings(seed=2, goal=12.0))
     store = typestore(ros1=True)
     bags = [
         write_ros1(tmp_path / "base_0.bag", store, base_rows(store, twin.recording)),

@@ -30,6 +30,7 @@ from tests.helpers.rosbag import (
     write_ros1,
     write_ros2,
 )
+from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import load_calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
@@ -44,7 +45,7 @@ from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
 from treetraits.firmware_bridge.jackal.records import JackalImu
 from treetraits.firmware_bridge.jackal.session import JackalProtocol
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 NEBULA_BAG = VLP16_DIR / "nebula_vlp16_dual_10hz_bag"
 NEBULA_PCAP = VLP16_DIR / "nebula_vlp16_dual_10hz.pcap"
@@ -474,7 +475,7 @@ def trees_csv(run: Path) -> list[dict]:
 
 
 def test_a_twin_survey_as_a_ros1_bag_maps_the_same_trees(tmp_path):
-    twin = simulate_survey(tmp_path / "twin.mcap", SurveySettings(seed=2, goal=12.0))
+    twin = twin_survey(SurveySettings(seed=2, goal=12.0))
     store = typestore(ros1=True)
     bag = write_ros1(tmp_path / "twin.bag", store, twin_rows(store, twin.recording))
     out = tmp_path / "imported.mcap"

@@ -15,13 +15,14 @@ from ruamel.yaml import YAML
 
 from tests.helpers.paths import FIXTURES
 from tests.helpers.rosbag import cli, header, recorded, turned_rows, typestore, write_ros1
+from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
 from treetraits.drivers.recording.motion import decode_imu
 from treetraits.drivers.rosbag.convert import ImportOptions, import_bags
 from treetraits.drivers.rosbag.topics import CITRUSFARM_T_BASE_IMU
 from treetraits.firmware_bridge.jackal.records import JackalImu
 from treetraits.firmware_bridge.jackal.session import JackalProtocol
-from treetraits.sim.run import SurveySettings, simulate_survey
+from treetraits.sim.run import SurveySettings
 
 CALIB = FIXTURES / "citrusfarm_calib"
 
@@ -45,8 +46,7 @@ def quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
 @pytest.fixture(scope="module")
 def twin_imu(tmp_path_factory) -> list[JackalImu]:
     """The twin's IMU samples (base_link), from a short survey's MCU stream."""
-    path = tmp_path_factory.mktemp("twin") / "twin.mcap"
-    twin = simulate_survey(path, SurveySettings(seed=2, goal=3.0))
+    twin = twin_survey(SurveySettings(seed=2, goal=3.0))
     mcu = JackalProtocol()
     samples = []
     for m in rec.read_recording(twin.recording, [rec.WHEELS_JACKAL]):
