@@ -24,7 +24,6 @@ import math
 import os
 import tempfile
 from collections.abc import Callable, Container, Iterable, Sequence
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Protocol, TextIO
 
@@ -33,29 +32,12 @@ import numpy as np
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.localization.utm import UtmGrid
-from treetraits.pipeline.trees import Tree
+from treetraits.pipeline.trees import CSV_COLUMNS, Tree, csv_row, geojson_properties
+from treetraits.pipeline.trees import iso_utc as iso_utc  # the outputs' time format, here too
 
 DEFAULT_GATE_M = 1.5
 FEATURES_PER_WRITE = 1000  # GeoJSON features joined per write (~0.5 MB of text)
 
-CSV_COLUMNS = (
-    "tree_id",
-    "field_id",
-    "row",
-    "easting",
-    "northing",
-    "utm_zone",
-    "lat",
-    "lon",
-    "width_m",
-    "height_m",
-    "ndvi",
-    "observations",
-    "first_seen",
-    "last_seen",
-    "status",  # appended (docs/architecture.md, Outputs): found or missing
-    "height_top_seen",  # appended: true, false (the height is a lower bound) or empty
-)
 FOUND, MISSING, REJECTED = "found", "missing", "rejected"
 
 UtmFromOdom = np.ndarray | Callable[[int], np.ndarray | None]
@@ -279,37 +261,6 @@ def _utm_xy(tree: MappedTree, grid: UtmGrid | None, utm_from_odom) -> np.ndarray
 # ---- outputs --------------------------------------------------------------------------
 
 
-def iso_utc(ns: int | None) -> str:
-    """ISO 8601 UTC with milliseconds, e.g. 2026-11-22T10:15:30.123Z ("" for None)."""
-    if ns is None:
-        return ""
-    seconds, rest = divmod(int(ns), 1_000_000_000)
-    moment = datetime.fromtimestamp(seconds, tz=timezone.utc)
-    return f"{moment:%Y-%m-%dT%H:%M:%S}.{rest // 1_000_000:03d}Z"
-
-
-def csv_row(tree: Tree) -> list[str]:
-    """One trees.csv line's cells, in CSV_COLUMNS order."""
-    return [
-        tree.tree_id,
-        tree.field_id or "",
-        tree.row or "",
-        _number(tree.easting, 3),
-        _number(tree.northing, 3),
-        tree.utm_zone or "",
-        _number(tree.lat, 8),
-        _number(tree.lon, 8),
-        _number(tree.width_m, 3),
-        _number(tree.height_m, 3),
-        _number(tree.ndvi, 4),
-        str(tree.observations),
-        iso_utc(tree.first_seen),
-        iso_utc(tree.last_seen),
-        tree.status,
-        _flag(tree.height_top_seen),
-    ]
-
-
 class RenderCache:
     """Each record's text from the previous write, by the record itself (`Tree` is frozen):
     a writer that gets the same records again (a survey's finalised trees, export after
@@ -346,7 +297,8 @@ class RenderCache:
 def write_trees_csv(
     path: str | os.PathLike, trees: Iterable[Tree], cache: RenderCache | None = None
 ) -> None:
-    """trees.csv with exactly CSV_COLUMNS, written atomically (temp file, fsync, rename).
+    """trees.csv with exactly CSV_COLUMNS (the table's, pipeline/trees.py), written
+    atomically (temp file, fsync, rename).
     `cache`: the lines of records written before are reused."""
     lines = (cache or RenderCache()).texts(trees, _csv_line)
 
@@ -367,8 +319,9 @@ def write_trees_geojson(
     path: str | os.PathLike, trees: Iterable[Tree], cache: RenderCache | None = None
 ) -> None:
     """trees.geojson: a FeatureCollection of WGS84 Points (null geometry for a tree not
-    yet georeferenced), the trees.csv values as properties (and `reason` for rejected
-    objects: rejected.geojson is written by this too); written atomically. The text is
+    yet georeferenced), the columns' values as properties (`geojson_properties`: `reason`
+    only for rejected objects, rejected.geojson is written by this too); written
+    atomically. The text is
     `json.dump(collection, indent=1)`'s, byte for byte, each feature formatted once
     (`cache`: the features of records written before are reused)."""
     features = (cache or RenderCache()).texts(trees, _feature_text)
@@ -402,42 +355,11 @@ def point_geometry(lat: float | None, lon: float | None) -> dict[str, Any] | Non
 
 
 def _feature(tree: Tree) -> dict[str, Any]:
-    geometry = point_geometry(tree.lat, tree.lon)
-    properties = {
-        "tree_id": tree.tree_id,
-        "field_id": tree.field_id,
-        "row": tree.row,
-        "easting": _rounded(tree.easting, 3),
-        "northing": _rounded(tree.northing, 3),
-        "utm_zone": tree.utm_zone,
-        "width_m": _rounded(tree.width_m, 3),
-        "height_m": _rounded(tree.height_m, 3),
-        "ndvi": _rounded(tree.ndvi, 4),
-        "observations": tree.observations,
-        "first_seen": iso_utc(tree.first_seen) or None,
-        "last_seen": iso_utc(tree.last_seen) or None,
-        "status": tree.status,
-        "height_top_seen": tree.height_top_seen,
+    return {
+        "type": "Feature",
+        "geometry": point_geometry(tree.lat, tree.lon),
+        "properties": geojson_properties(tree),
     }
-    if tree.reason is not None:
-        properties["reason"] = tree.reason
-    return {"type": "Feature", "geometry": geometry, "properties": properties}
-
-
-def _flag(value: bool | None) -> str:
-    return "" if value is None else str(bool(value)).lower()
-
-
-def _number(value: float | None, decimals: int) -> str:
-    if value is None or not math.isfinite(value):
-        return ""
-    return f"{value:.{decimals}f}"
-
-
-def _rounded(value: float | None, decimals: int) -> float | None:
-    if value is None or not math.isfinite(value):
-        return None
-    return round(float(value), decimals)
 
 
 def _write_atomically(path: str | os.PathLike, write: Callable[[TextIO], None]) -> None:

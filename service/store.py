@@ -3,10 +3,11 @@ cut loses at most the scan in flight and the file always opens clean.
 
 Tables:
 - `run`: key/value facts about the run (software, calibration, method, start time).
-- `trees`: the latest state of every tree (one row per tree, replaced on each update);
-  `status` found, or missing for a field-map tree passed and not found (tree_id
-  `missing:<field id>`, replaced at each export); `height_top_seen` 1 when some scan's
-  beam passed over the crown's top, 0 when its height is a lower bound, NULL unjudged.
+- `trees`: the latest state of every tree (one row per tree, replaced on each update),
+  its columns made from `Tree`'s table (pipeline/trees.py); `status` found, or missing
+  for a field-map tree passed and not found (tree_id `missing:<field id>`, replaced at
+  each export); `height_top_seen` 1 when some scan's beam passed over the crown's top, 0
+  when its height is a lower bound, NULL unjudged.
 - `rejected`: objects seen as often as trees that are not trees, with the reason
   (replaced at each export).
 - `observations`: every per-scan observation of a tree or object (append only).
@@ -17,24 +18,62 @@ from __future__ import annotations
 import contextlib
 import json
 import sqlite3
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from treetraits.pipeline.trees import Tree
+from treetraits.pipeline.trees import (
+    SQL_FIELDS,
+    TREE_FIELD,
+    Tree,
+    TreeField,
+    sql_values,
+    tree_from_sql,
+)
 
-SCHEMA = """
+# `rejected`'s columns (its text below), each stored as the `trees` column of that name
+# is; `reason` is NOT NULL there: every rejected object has one.
+REJECTED_COLUMNS = (
+    "tree_id",
+    "reason",
+    "easting",
+    "northing",
+    "utm_zone",
+    "lat",
+    "lon",
+    "width_m",
+    "height_m",
+    "ndvi",
+    "observations",
+    "first_seen",
+    "last_seen",
+)
+
+
+def trees_table_sql(fields: Sequence[TreeField] = SQL_FIELDS) -> str:
+    """The `trees` table's CREATE TABLE text, made from the fields' SQL definitions: the
+    columns of one `sql_line` on one line, its `sql_note` as the line's comment."""
+    lines: list[list[TreeField]] = []
+    for f in fields:
+        if lines and f.sql_line is not None and lines[-1][-1].sql_line == f.sql_line:
+            lines[-1].append(f)
+        else:
+            lines.append([f])
+    text = []
+    for k, line in enumerate(lines):
+        columns = ", ".join(f"{f.name} {f.sql_definition}" for f in line)
+        comma = "," if k < len(lines) - 1 else ""
+        notes = "; ".join(f.sql_note for f in line if f.sql_note)
+        text.append(f"    {columns}{comma}" + (f"  -- {notes}" if notes else ""))
+    return "CREATE TABLE IF NOT EXISTS trees (\n" + "\n".join(text) + "\n);\n"
+
+
+SCHEMA = (
+    """
 CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS trees (
-    tree_id TEXT PRIMARY KEY,
-    field_id TEXT, row TEXT,
-    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
-    width_m REAL, height_m REAL, ndvi REAL,  -- NULL until measured
-    observations INTEGER NOT NULL, first_seen INTEGER, last_seen INTEGER,
-    status TEXT NOT NULL DEFAULT 'found',
-    height_top_seen INTEGER  -- 1, 0 (the height is a lower bound), NULL (not judged)
-);
-CREATE TABLE IF NOT EXISTS rejected (
+"""
+    + trees_table_sql()
+    + """CREATE TABLE IF NOT EXISTS rejected (
     tree_id TEXT PRIMARY KEY, reason TEXT NOT NULL,
     easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
     width_m REAL, height_m REAL, ndvi REAL,
@@ -47,6 +86,7 @@ CREATE TABLE IF NOT EXISTS observations (
 );
 CREATE INDEX IF NOT EXISTS observations_tree ON observations (tree_id);
 """
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,10 +116,12 @@ class TraitStore:
         self._add_missing_columns()
 
     def _add_missing_columns(self) -> None:
-        """A store written before a column was appended gets it (NULL: not known)."""
+        """A store written before a column was appended gets it (NULL: not known; so an
+        appended column allows NULL or has a default, as SQLite requires)."""
         have = {row[1] for row in self._db.execute("PRAGMA table_info(trees)")}
-        if "height_top_seen" not in have:
-            self._db.execute("ALTER TABLE trees ADD COLUMN height_top_seen INTEGER")
+        for f in SQL_FIELDS:
+            if f.name not in have:
+                self._db.execute(f"ALTER TABLE trees ADD COLUMN {f.name} {f.sql_definition}")
 
     def set_run_facts(self, facts: dict) -> None:
         self._db.execute("BEGIN")
@@ -119,24 +161,14 @@ class TraitStore:
             self._insert_trees(missing)
             self._db.execute("DELETE FROM rejected")
             self._db.executemany(
-                "INSERT INTO rejected VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                [(t.tree_id, t.reason or "", *_measured(t)) for t in rejected],
+                f"INSERT INTO rejected VALUES ({_marks(REJECTED_COLUMNS)})",
+                [sql_values(t, _REJECTED_FIELDS) for t in rejected],
             )
 
     def _insert_trees(self, trees: Iterable[Tree]) -> None:
         self._db.executemany(
-            "INSERT OR REPLACE INTO trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            [
-                (
-                    t.tree_id or f"missing:{t.field_id}",
-                    t.field_id,
-                    t.row,
-                    *_measured(t),
-                    t.status,
-                    None if t.height_top_seen is None else int(t.height_top_seen),
-                )
-                for t in trees
-            ],
+            f"INSERT OR REPLACE INTO trees ({_TREES_COLUMNS}) VALUES ({_marks(SQL_FIELDS)})",
+            [sql_values(_keyed(t)) for t in trees],
         )
 
     @contextlib.contextmanager
@@ -160,15 +192,9 @@ class TraitStore:
                 self._db.execute("ROLLBACK")
 
     def trees(self) -> list[Tree]:
-        rows = self._db.execute(
-            "SELECT tree_id, easting, northing, utm_zone, lat, lon, width_m, height_m, ndvi, "
-            "observations, first_seen, last_seen, field_id, row, status, height_top_seen "
-            "FROM trees ORDER BY tree_id"
-        ).fetchall()
-        return [
-            Tree(*row[:-1], height_top_seen=None if row[-1] is None else bool(row[-1]))
-            for row in rows
-        ]
+        rows = self._db.execute(f"SELECT {_TREES_COLUMNS} FROM trees ORDER BY tree_id")
+        names = [f.name for f in SQL_FIELDS]
+        return [tree_from_sql(dict(zip(names, row, strict=True))) for row in rows]
 
     def observation_count(self) -> int:
         return self._db.execute("SELECT COUNT(*) FROM observations").fetchone()[0]
@@ -184,24 +210,14 @@ class TraitStore:
         self.close()
 
 
-def _measured(t: Tree) -> tuple:
-    """A tree's columns from `easting` to `last_seen`, as the trees and rejected tables
-    hold them (an unmeasured trait, NaN, as NULL)."""
-    return (
-        t.easting,
-        t.northing,
-        t.utm_zone,
-        t.lat,
-        t.lon,
-        _real(t.width_m),
-        _real(t.height_m),
-        t.ndvi,
-        t.observations,
-        t.first_seen,
-        t.last_seen,
-    )
+_TREES_COLUMNS = ", ".join(f.name for f in SQL_FIELDS)
+_REJECTED_FIELDS = tuple(TREE_FIELD[name] for name in REJECTED_COLUMNS)
 
 
-def _real(value: float | None) -> float | None:
-    """NULL for an unmeasured trait (NaN)."""
-    return None if value is None or value != value else value
+def _marks(columns: Sequence) -> str:
+    return ", ".join("?" * len(columns))
+
+
+def _keyed(tree: Tree) -> Tree:
+    """A missing tree has no id of its own: the table keys it by its field id."""
+    return tree if tree.tree_id else replace(tree, tree_id=f"missing:{tree.field_id}")

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-# trees.csv columns as docs/architecture.md fixes them (restated here, not imported from the code).
+# trees.csv's first columns as docs/architecture.md fixes them (restated here, not imported
+# from the code): never reordered or renamed. A new column is appended after them in
+# pipeline/trees.py's table, and the tests check the header starts with these.
 CONTRACT_CSV_COLUMNS = [
     "tree_id",
     "field_id",

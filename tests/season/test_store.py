@@ -17,8 +17,9 @@ from treetraits.pipeline.linking import (
     link_by_position,
     link_surveys,
 )
-from treetraits.pipeline.trees import Tree
-from treetraits.season.store import SeasonStore, Survey
+from treetraits.pipeline.trees import CSV_COLUMNS, TREE_FIELD, Tree, csv_row
+from treetraits.season.export import write_season_csv
+from treetraits.season.store import SURVEY_TREE_COLUMNS, VISIT_COLUMNS, SeasonStore, Survey
 
 DAY_NS = 86400 * 10**9
 T0 = 1_778_605_200 * 10**9  # 2026-05-12T17:00:00Z
@@ -230,3 +231,26 @@ def test_season_cli_json_export_and_errors(tmp_path, capsys):
     assert "not a season store" in capsys.readouterr().err
     assert main(["season", "trees", "--season", str(tmp_path / "none.sqlite")]) == 2
     assert not (tmp_path / "none.sqlite").exists()
+
+
+def test_the_season_keeps_a_run_trees_columns_as_the_run_does(tmp_path):
+    run_tree = tree("1", *GRID[0], width=2.71234, height=2.60049, ndvi=0.612345)
+    with SeasonStore(tmp_path / "season.sqlite") as store:
+        add(store, "a", T0, [run_tree])
+        store.relink("north", DEFAULT_LINK_GATE_M)
+        types = {
+            table: {c[1]: c[2] for c in store._db.execute(f"PRAGMA table_info({table})")}
+            for table in ("survey_trees", "tree_surveys")
+        }
+        write_season_csv(tmp_path / "season.csv", store.trees())
+    for name in SURVEY_TREE_COLUMNS:
+        stored = "run_tree_id" if name == "tree_id" else name
+        assert types["survey_trees"][stored] == TREE_FIELD[name].format.sql_type, name
+    for name in VISIT_COLUMNS:
+        assert types["tree_surveys"][name] == TREE_FIELD[name].format.sql_type, name
+    # season.csv's tree cells are trees.csv's.
+    header, line = (tmp_path / "season.csv").read_text().splitlines()
+    season = dict(zip(header.split(","), line.split(","), strict=True))
+    run = dict(zip(CSV_COLUMNS, csv_row(run_tree), strict=True))
+    assert [season[name] for name in VISIT_COLUMNS] == [run[name] for name in VISIT_COLUMNS]
+    assert season["width_m"] == "2.712" and season["ndvi"] == "0.6123"

@@ -3,6 +3,8 @@ scan loses only that scan; the file opens clean."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import signal
 import sqlite3
 import subprocess
@@ -12,7 +14,8 @@ import time
 
 from tests.helpers.paths import REPO
 from tests.helpers.store import tree
-from treetraits.service.store import Observation, TraitStore
+from treetraits.pipeline.trees import SQL_FIELDS, TREE_FIELD, Tree
+from treetraits.service.store import REJECTED_COLUMNS, Observation, TraitStore, trees_table_sql
 
 
 def test_round_trip(tmp_path):
@@ -130,3 +133,73 @@ def test_a_commit_failing_on_a_full_disk_leaves_the_store_usable(tmp_path):
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     assert lines[0].startswith("failed") and lines[1] == "observations 2"  # no half scan
+
+
+# The trees table's text as the stores on disk hold it; a new column is a line after these.
+STORED_TREES_TABLE = """CREATE TABLE IF NOT EXISTS trees (
+    tree_id TEXT PRIMARY KEY,
+    field_id TEXT, row TEXT,
+    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
+    width_m REAL, height_m REAL, ndvi REAL,  -- NULL until measured
+    observations INTEGER NOT NULL, first_seen INTEGER, last_seen INTEGER,
+    status TEXT NOT NULL DEFAULT 'found',
+    height_top_seen INTEGER  -- 1, 0 (the height is a lower bound), NULL (not judged)
+"""
+
+
+def test_the_trees_table_is_made_from_the_fields_table(tmp_path):
+    def unended(line: str) -> str:  # the line without the comma an appended column adds
+        return line.replace(",  --", "  --").rstrip(",")
+
+    stored = STORED_TREES_TABLE.splitlines()
+    made = trees_table_sql().splitlines()
+    assert [unended(line) for line in made[: len(stored)]] == [unended(x) for x in stored]
+    with TraitStore(tmp_path / "traits.sqlite") as store:
+        trees = list(store._db.execute("PRAGMA table_info(trees)"))
+        rejected = list(store._db.execute("PRAGMA table_info(rejected)"))
+    assert [(c[1], c[2]) for c in trees] == [(f.name, f.format.sql_type) for f in SQL_FIELDS]
+    assert [(c[1], c[2]) for c in rejected] == [
+        (name, TREE_FIELD[name].format.sql_type) for name in REJECTED_COLUMNS
+    ]
+
+
+def test_trees_read_back_as_they_were_written(tmp_path):
+    found = dataclasses.replace(tree(1), field_id="F1", row="r1", height_top_seen=False)
+    missing = Tree(
+        "", 1.0, 2.0, "11N", 33.9, -117.3, math.nan, math.nan, None, 0, None, None, "F2", "r1",
+        "missing",
+    )  # fmt: skip
+    rejected = dataclasses.replace(tree(3), status="rejected", reason="post")
+    with TraitStore(tmp_path / "traits.sqlite") as store:
+        store.commit_scan([], [found])
+        store.replace_unmatched([missing], [rejected])
+        back = store.trees()
+        stored = store._db.execute("SELECT * FROM rejected").fetchall()
+        top_seen = store._db.execute("SELECT height_top_seen FROM trees").fetchall()
+    assert back[0] == found
+    # The missing tree keyed by its field id, its unmeasured traits NaN again (as text:
+    # NaN is not equal to itself).
+    assert repr(back[1]) == repr(dataclasses.replace(missing, tree_id="missing:F2"))
+    assert stored == [("T3", "post", 467003.0, 3758000.0, "11N", 33.96, -117.35, 2.7, 2.6,
+                       0.75, 1, 1000, 2001)]  # fmt: skip
+    assert top_seen == [(0,), (None,)]  # a flag as 0 / 1, unjudged NULL
+
+
+def test_a_store_from_before_a_column_gets_it(tmp_path):
+    path = tmp_path / "traits.sqlite"
+    old = sqlite3.connect(path)
+    old.execute(
+        "CREATE TABLE trees (tree_id TEXT PRIMARY KEY, field_id TEXT, row TEXT, easting REAL, "
+        "northing REAL, utm_zone TEXT, lat REAL, lon REAL, width_m REAL, height_m REAL, "
+        "ndvi REAL, observations INTEGER NOT NULL, first_seen INTEGER, last_seen INTEGER, "
+        "status TEXT NOT NULL DEFAULT 'found')"
+    )
+    old.execute("INSERT INTO trees (tree_id, observations) VALUES ('T0', 3)")
+    old.commit()
+    old.close()
+    with TraitStore(path) as store:
+        store.commit_scan([], [tree(1)])
+        assert [(t.tree_id, t.height_top_seen) for t in store.trees()] == [
+            ("T0", None),
+            ("T1", None),
+        ]

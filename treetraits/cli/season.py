@@ -88,7 +88,7 @@ def _export(args: argparse.Namespace, season) -> int:
 
 def format_history(trees) -> str:
     """One block of lines per tree: its surveys by date with the traits measured."""
-    from treetraits.pipeline.georef import iso_utc
+    from treetraits.pipeline.trees import iso_utc
 
     def cell(value, fmt: str) -> str:
         return "-" if value is None else format(value, fmt)

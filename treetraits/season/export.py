@@ -9,14 +9,16 @@ import os
 from collections.abc import Sequence
 from typing import Any, TextIO
 
-from treetraits.pipeline.georef import _write_atomically, iso_utc, point_geometry
+from treetraits.pipeline.georef import _write_atomically, point_geometry
 from treetraits.pipeline.linking import growth_per_30_days
-from treetraits.season.store import SeasonTree
+from treetraits.pipeline.trees import csv_cells, iso_utc, json_value
+from treetraits.season.store import VISIT_COLUMNS, SeasonTree
 
 CSV_NAME = "season.csv"
 GEOJSON_NAME = "season.geojson"
 EXPORT_OUTPUTS = (CSV_NAME, GEOJSON_NAME)
 
+# The season's own columns, then a visit's tree columns, formatted as trees.csv does.
 CSV_COLUMNS = [
     "tree_id",
     "block",
@@ -27,14 +29,7 @@ CSV_COLUMNS = [
     "recording",
     "status",
     "run_tree_id",
-    "easting",
-    "northing",
-    "lat",
-    "lon",
-    "width_m",
-    "height_m",
-    "ndvi",
-    "observations",
+    *VISIT_COLUMNS,
 ]
 
 
@@ -54,9 +49,10 @@ def growth(tree: SeasonTree) -> dict[str, Any]:
         "first_date": iso_utc(tree.visits[0].t_start) if tree.visits else None,
         "last_date": iso_utc(last.t_start) if last else None,
         "last_status": last.status if last else None,
-        "width_m": _round(found[-1].width_m) if found else None,
-        "height_m": _round(found[-1].height_m) if found else None,
-        "ndvi": _round(found[-1].ndvi, 4) if found else None,
+        # The latest measurement, as trees.geojson writes it.
+        "width_m": json_value("width_m", found[-1].width_m) if found else None,
+        "height_m": json_value("height_m", found[-1].height_m) if found else None,
+        "ndvi": json_value("ndvi", found[-1].ndvi) if found else None,
     }
 
 
@@ -70,21 +66,13 @@ def write_season_csv(path: str | os.PathLike, trees: Sequence[SeasonTree]) -> No
                     [
                         t.tree_id,
                         t.block,
-                        t.field_id or "",
-                        t.row or "",
+                        *csv_cells(t, ("field_id", "row")),
                         v.survey_id,
                         iso_utc(v.t_start),
                         v.recording,
                         v.status,
                         v.run_tree_id or "",
-                        _text(v.easting, 3),
-                        _text(v.northing, 3),
-                        _text(v.lat, 8),
-                        _text(v.lon, 8),
-                        _text(v.width_m, 3),
-                        _text(v.height_m, 3),
-                        _text(v.ndvi, 4),
-                        "" if v.observations is None else v.observations,
+                        *csv_cells(v, VISIT_COLUMNS),
                     ]
                 )
 
@@ -117,7 +105,3 @@ def write_season_geojson(path: str | os.PathLike, trees: Sequence[SeasonTree]) -
 
 def _round(value: float | None, decimals: int = 3) -> float | None:
     return None if value is None else round(float(value), decimals)
-
-
-def _text(value: float | None, decimals: int) -> str:
-    return "" if value is None else f"{value:.{decimals}f}"

@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from treetraits.errors import SourceError
-from treetraits.pipeline.georef import _write_atomically, iso_utc
+from treetraits.pipeline.georef import _write_atomically
+from treetraits.pipeline.trees import TREE_FIELD, iso_utc
 
 # Trees whose histories the season page plots (the ones found in the most surveys).
 HISTORY_TREES = 4
@@ -107,7 +108,8 @@ def _run_data(store: Path, run_dir: Path) -> ReportData:
         ).fetchall()
     finally:
         db.close()
-    trees = [MapTree(*r[:8], height_top_seen=None if r[8] is None else bool(r[8])) for r in rows]
+    top = TREE_FIELD["height_top_seen"]
+    trees = [MapTree(*r[:8], height_top_seen=top.from_sql(r[8])) for r in rows]
     path = _json_list(facts.get("path"))
     shown = (
         "input",

@@ -17,7 +17,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from treetraits.errors import TreetraitsError
-from treetraits.pipeline.trees import Tree
+from treetraits.pipeline.trees import (
+    TREE_FIELD,
+    Tree,
+    iso_utc,
+    json_value,
+    sql_values,
+    tree_from_sql,
+)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS season (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -67,6 +74,28 @@ CREATE TABLE IF NOT EXISTS failures (
 """
 
 SCHEMA_VERSION = "1"
+
+# The run's tree columns `survey_trees` keeps after `survey_id` (`tree_id` as
+# `run_tree_id`), and the ones of a visit (`tree_surveys`, `TreeVisit`), each stored as
+# the run's `trees` table stores it (pipeline/trees.py).
+SURVEY_TREE_COLUMNS = (
+    "tree_id",
+    "status",
+    "field_id",
+    "row",
+    "easting",
+    "northing",
+    "utm_zone",
+    "lat",
+    "lon",
+    "width_m",
+    "height_m",
+    "ndvi",
+    "observations",
+)
+VISIT_COLUMNS = ("easting", "northing", "lat", "lon", "width_m", "height_m", "ndvi", "observations")
+_SURVEY_TREE_FIELDS = tuple(TREE_FIELD[name] for name in SURVEY_TREE_COLUMNS)
+_VISIT_FIELDS = tuple(TREE_FIELD[name] for name in VISIT_COLUMNS)
 
 
 class SeasonError(TreetraitsError):
@@ -207,24 +236,9 @@ class SeasonStore:
             )
             survey_id = int(cursor.lastrowid)
             self._db.executemany(
-                "INSERT INTO survey_trees VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                f"INSERT INTO survey_trees VALUES (?, {_marks(SURVEY_TREE_COLUMNS)})",
                 [
-                    (
-                        survey_id,
-                        t.tree_id or "",
-                        t.status,
-                        t.field_id,
-                        t.row,
-                        t.easting,
-                        t.northing,
-                        t.utm_zone,
-                        t.lat,
-                        t.lon,
-                        _real(t.width_m),
-                        _real(t.height_m),
-                        _real(t.ndvi),
-                        t.observations,
-                    )
+                    (survey_id, *sql_values(t, _SURVEY_TREE_FIELDS))
                     for t in trees
                     if t.status in ("found", "missing")
                 ],
@@ -264,53 +278,28 @@ class SeasonStore:
                     (tree.tree_id, block, tree.field_id, tree.row, *tree.position()),
                 )
                 self._db.executemany(
-                    "INSERT INTO tree_surveys VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    f"INSERT INTO tree_surveys VALUES (?, ?, ?, ?, {_marks(VISIT_COLUMNS)})",
                     [
                         (
                             tree.tree_id,
                             survey_id,
                             status,
                             t.tree_id or None,
-                            t.easting,
-                            t.northing,
-                            t.lat,
-                            t.lon,
-                            _real(t.width_m),
-                            _real(t.height_m),
-                            _real(t.ndvi),
-                            t.observations,
+                            *sql_values(t, _VISIT_FIELDS),
                         )
                         for survey_id, status, t in tree.visits
                     ],
                 )
 
     def _survey_trees(self, survey_id: int) -> list[Tree]:
+        """A survey's run trees as they came, without what the season does not keep
+        (times, `height_top_seen`)."""
+        columns = ", ".join("run_tree_id" if c == "tree_id" else c for c in SURVEY_TREE_COLUMNS)
         rows = self._db.execute(
-            "SELECT run_tree_id, easting, northing, utm_zone, lat, lon, width_m, height_m, "
-            "ndvi, observations, field_id, row, status FROM survey_trees WHERE survey_id = ? "
-            "ORDER BY rowid",
+            f"SELECT {columns} FROM survey_trees WHERE survey_id = ? ORDER BY rowid",
             (survey_id,),
         ).fetchall()
-        return [
-            Tree(
-                r[0],
-                r[1],
-                r[2],
-                r[3],
-                r[4],
-                r[5],
-                _nan(r[6]),
-                _nan(r[7]),
-                r[8],
-                r[9],
-                None,
-                None,
-                r[10],
-                r[11],
-                r[12],
-            )
-            for r in rows
-        ]
+        return [tree_from_sql(dict(zip(SURVEY_TREE_COLUMNS, r, strict=True))) for r in rows]
 
     # --- reading ------------------------------------------------------------------------
 
@@ -346,8 +335,8 @@ class SeasonStore:
         visits: dict[tuple[str, str], list[TreeVisit]] = {(t[1], t[0]): [] for t in trees}
         rows = self._db.execute(
             "SELECT s.block, v.tree_id, v.survey_id, s.t_start, s.recording, v.status, "
-            "v.run_tree_id, v.easting, v.northing, v.lat, v.lon, v.width_m, v.height_m, v.ndvi, "
-            f"v.observations FROM tree_surveys v JOIN surveys s USING (survey_id) "
+            f"v.run_tree_id, {', '.join(f'v.{c}' for c in VISIT_COLUMNS)} "
+            "FROM tree_surveys v JOIN surveys s USING (survey_id) "
             f"{where.replace('t.', 'v.')} ORDER BY s.t_start, v.survey_id",
             params,
         ).fetchall()
@@ -384,18 +373,12 @@ class _Transaction:
             self.db.execute("ROLLBACK")
 
 
-def _real(value: float | None) -> float | None:
-    """NULL for an unmeasured trait (NaN)."""
-    return None if value is None or value != value else float(value)
-
-
-def _nan(value: float | None) -> float:
-    return float("nan") if value is None else value
+def _marks(columns: Sequence) -> str:
+    return ", ".join("?" * len(columns))
 
 
 def season_trees_json(trees: Sequence[SeasonTree]) -> dict:
     """`season trees --json`: {"trees": [{"id": ..., "surveys": [{"date": ..., ...}]}]}."""
-    from treetraits.pipeline.georef import iso_utc
 
     def visit(v: TreeVisit) -> dict:
         return {
@@ -403,11 +386,11 @@ def season_trees_json(trees: Sequence[SeasonTree]) -> dict:
             "survey": v.survey_id,
             "recording": v.recording,
             "status": v.status,
-            "width_m": _round(v.width_m, 3),
-            "height_m": _round(v.height_m, 3),
-            "ndvi": _round(v.ndvi, 4),
-            "lat": _round(v.lat, 8),
-            "lon": _round(v.lon, 8),
+            "width_m": json_value("width_m", v.width_m),
+            "height_m": json_value("height_m", v.height_m),
+            "ndvi": json_value("ndvi", v.ndvi),
+            "lat": json_value("lat", v.lat),
+            "lon": json_value("lon", v.lon),
             "run_tree_id": v.run_tree_id,
         }
 
@@ -418,14 +401,10 @@ def season_trees_json(trees: Sequence[SeasonTree]) -> dict:
                 "block": t.block,
                 "field_id": t.field_id,
                 "row": t.row,
-                "lat": _round(t.lat, 8),
-                "lon": _round(t.lon, 8),
+                "lat": json_value("lat", t.lat),
+                "lon": json_value("lon", t.lon),
                 "surveys": [visit(v) for v in t.visits],
             }
             for t in trees
         ]
     }
-
-
-def _round(value: float | None, decimals: int) -> float | None:
-    return None if value is None else round(float(value), decimals)
