@@ -16,20 +16,18 @@ built once per run by the caller that georeferences after every scan).
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import math
 import os
-import tempfile
 from collections.abc import Callable, Container, Iterable, Sequence
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any, Protocol, TextIO
 
 import numpy as np
 
+from treetraits.files import write_atomically
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.localization.utm import UtmGrid
@@ -354,7 +352,7 @@ def write_trees_csv(
         csv.writer(f, lineterminator="\n").writerow(CSV_COLUMNS)
         f.writelines(lines)
 
-    _write_atomically(path, write)
+    write_atomically(path, write, permissions=0o644)
 
 
 def _csv_line(tree: Tree) -> str:
@@ -385,7 +383,7 @@ def write_trees_geojson(
             f.write("\n ")
         f.write("]\n}\n")
 
-    _write_atomically(path, write)
+    write_atomically(path, write, permissions=0o644)
 
 
 def _feature_text(tree: Tree) -> str:
@@ -438,27 +436,3 @@ def _rounded(value: float | None, decimals: int) -> float | None:
     if value is None or not math.isfinite(value):
         return None
     return round(float(value), decimals)
-
-
-def _write_atomically(path: str | os.PathLike, write: Callable[[TextIO], None]) -> None:
-    """Write to a temp file beside `path`, fsync, rename over `path`, fsync the directory:
-    a reader (or a power cut) sees the old file or the new one, never a part."""
-    target = Path(path)
-    fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with open(fd, "w", encoding="utf-8", newline="") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(temp, 0o644)  # mkstemp makes it 0600
-        os.replace(temp, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temp)
-        raise
-    with contextlib.suppress(OSError):  # not every filesystem lets a directory be fsynced
-        directory = os.open(target.parent, os.O_RDONLY)
-        try:
-            os.fsync(directory)
-        finally:
-            os.close(directory)

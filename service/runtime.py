@@ -33,7 +33,6 @@ import signal
 import threading
 import time
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 
 from treetraits import __version__
@@ -42,6 +41,7 @@ from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.times import NmeaClock
 from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.errors import ConfigError, TreetraitsError
+from treetraits.files import utc_stamp
 from treetraits.service.config import ServiceConfig, dump_config
 from treetraits.service.health import assess, status_line
 from treetraits.service.notify import Notifier
@@ -109,12 +109,6 @@ class Counters:
     export_failures: int = 0
     recorded: int = 0
     problems: dict[str, str] = field(default_factory=dict)  # "store", "export", ... -> text
-
-
-def utc_stamp(moment: datetime | None = None) -> str:
-    """20261123T161800Z: a run's name, sortable, safe in a path."""
-    moment = moment or datetime.now(timezone.utc)
-    return moment.strftime("%Y%m%dT%H%M%SZ")
 
 
 def new_run_dir(root: Path, stamp: str) -> Path:

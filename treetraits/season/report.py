@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from treetraits.errors import SourceError
-from treetraits.pipeline.georef import _write_atomically, iso_utc
+from treetraits.files import write_atomically
+from treetraits.pipeline.georef import iso_utc
 
 # Trees whose histories the season page plots (the ones found in the most surveys).
 HISTORY_TREES = 4
@@ -443,7 +444,7 @@ def render_html(data: ReportData, colour: str = "height") -> str:
 
 def write_report(path: Path, data: ReportData, colour: str = "height") -> None:
     page = render_html(data, colour)
-    _write_atomically(path, lambda f: f.write(page))
+    write_atomically(path, lambda f: f.write(page), permissions=0o644)
 
 
 def _img(png_base64: str, alt: str) -> str:
