@@ -35,7 +35,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from treetraits import __version__
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.times import NmeaClock
@@ -260,7 +259,7 @@ class Service:
                 worker.play_video(start_ns)
 
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
-        from treetraits.service.survey import make_processor
+        from treetraits.service.survey import make_processor, start_facts
 
         self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
         # Before READY: the first scans would otherwise wait ~1-2 s for the imports (and
@@ -283,14 +282,9 @@ class Service:
             field_map,
             self.cfg.output,
             facts={
-                "software": f"treetraits {__version__}",
-                "input": "live",
-                "method": self.cfg.pipeline.method,
-                "traits": self.cfg.traits.method,
+                **start_facts(self.cfg, calibration, "live"),
                 "started": self._stamp,
                 "config": dump_config(self.cfg, comments=False),
-                "calibration": calibration.to_json(),
-                "calibration_defaults": list(calibration.defaults),
                 # Until the run ends cleanly: a run killed outright stays "running".
                 "end": "running",
             },
@@ -550,17 +544,9 @@ class Service:
                 log.info("recording closed: %s", ", ".join(map(str, self.recorder.files)))
 
     def _set_final_facts(self) -> None:
-        processor = self.processor
         facts = {
             "scans": self.counters.scans,
-            "world_frame": processor.world_frame,
-            "utm_zone": processor.localizer.grid.name if processor.localizer.grid else None,
-            "scans_without_pose": processor.stats.scans_without_pose,
-            "scans_without_heading": processor.stats.scans_without_heading,
-            # Ready while the loop was more than service.max_backlog_s behind: not mapped.
-            "scans_shed": processor.stats.scans_shed,
-            "fixes": processor.stats.fixes,
-            "frames": processor.stats.frames,
+            **self.processor.facts(live=True),
             "stopped": utc_stamp(),
             "end": self.end_state(),
             # Items still queued when the drain limit ran out: received, never processed
