@@ -18,8 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from treetraits.jit import kernel, warm_up
-from treetraits.pipeline.clustering import kernel_layout
+from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.config import ClassifyConfig
 
 TREE = "tree"

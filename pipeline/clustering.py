@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from treetraits.jit import kernel, warm_up
+from treetraits.jit import kernel, kernel_layout, warm_up
 
 
 def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree") -> np.ndarray:
@@ -239,17 +239,6 @@ def nearest_label(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray) -
     from scipy.spatial import cKDTree  # anchors of two labels at the same distance
 
     return labels[cKDTree(anchors).query(points)[1]]
-
-
-def kernel_layout(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
-    """The one layout the kernels are compiled for (numba compiles anew for each). An
-    array already in it is returned as np.require would, without its ~1.5 us of checks
-    (a scan asks ~80 times)."""
-    if isinstance(array, np.ndarray):
-        flags = array.flags
-        if flags.c_contiguous and flags.writeable and array.dtype == dtype:
-            return array
-    return np.require(array, dtype, ["C", "W"])
 
 
 @kernel

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from treetraits.drivers.records import POINT_DTYPE
-from treetraits.jit import kernel, warm_up
+from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.classify import (
     Shape,
     horizontal_extent,
@@ -173,8 +173,7 @@ assert [POINT_DTYPE.fields[f][1] for f in ("x", "y", "z")] == [0, 4, 8]
 def _point_words(points: np.ndarray) -> np.ndarray:
     """POINT_DTYPE points as a writable C-ordered (points, 7) float32 view (copied when
     they are not so): the one layout `_crop_level` is compiled for."""
-    if not (points.flags.c_contiguous and points.flags.writeable):
-        points = np.array(points, order="C")
+    points = kernel_layout(points, points.dtype)
     return points.view(np.float32).reshape(len(points), _WORDS)
 
 

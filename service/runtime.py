@@ -65,34 +65,27 @@ JOIN_S = 1.0  # then each receive thread gets this long to end
 IDLE_WAIT_S = 0.1  # with every queue empty, the loop sleeps at most this long
 BATCH = 256  # items between two looks at the clock (exports, status, watchdog)
 GATHER_S = 0.01  # once woken from idle, the loop waits this long for more items
-PIPELINE_MODULES = (
+# What the pipeline imports where it is used (first scans would wait for them).
+PIPELINE_IMPORTS = (
     "cv2",
     "filterpy.kalman",
     "scipy.ndimage",
     "scipy.optimize",
     "scipy.spatial",
     "treetraits.pipeline.fusion",
-    # Every module with compiled kernels (treetraits.jit), for their warm-ups.
-    "treetraits.drivers.velodyne.packet",
-    "treetraits.pipeline.classify",
-    "treetraits.pipeline.clustering",
-    "treetraits.pipeline.deskew",
-    "treetraits.pipeline.detection",
-    "treetraits.pipeline.mapper",
-    "treetraits.pipeline.projection",
-    "treetraits.pipeline.stems",
-    "treetraits.pipeline.terrain",
-    "treetraits.pipeline.traits",
 )
+# Where the modules with compiled kernels are looked for (treetraits.jit.kernel_modules).
+KERNEL_PACKAGES = ("treetraits.drivers", "treetraits.pipeline")
 
 
 def load_pipeline() -> None:
-    """Import what the pipeline imports where it is used, and compile every kernel or load
-    it from numba's cache (treetraits.jit). The service does it before READY;
-    `make install` once as the service's user, to fill the unit's cache."""
-    from treetraits.jit import compile_all
+    """Import what the pipeline imports where it is used and every module with compiled
+    kernels, and compile each kernel or load it from numba's cache (treetraits.jit). The
+    service does it before READY; `make install` once as the service's user, to fill the
+    unit's cache."""
+    from treetraits.jit import compile_all, kernel_modules
 
-    for module in PIPELINE_MODULES:
+    for module in (*PIPELINE_IMPORTS, *kernel_modules(*KERNEL_PACKAGES)):
         importlib.import_module(module)
     compile_all()
 
