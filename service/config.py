@@ -538,7 +538,7 @@ def _dump_table(name: str, content: Any, comments: bool, lines: list[str]) -> No
             continue
         assignment = f"{spec.name} = {_toml_value(value)}"
         if comments:
-            note = spec.metadata.get("help") or helps.get(spec.name, "")
+            note = helps.get(spec.name, "")
             default = _default(spec)
             if value != default:
                 note = f"{note} [default {_toml_value(default)}]".strip()
@@ -551,8 +551,20 @@ def _dump_table(name: str, content: Any, comments: bool, lines: list[str]) -> No
 
 @functools.cache
 def field_help(table_type: type) -> dict[str, str]:
-    """The first sentence of the comment above each field of a dataclass: the reasons for
-    the pipeline's values live there, once, and `config dump` shows them."""
+    """The help `config dump` gives each key of a section: the field's `_key` help where it
+    has one (the service's own sections, written as help), else the first sentence of
+    the comment above the field (the pipeline's sections: the reasons for their values
+    live there, once, and the help is taken from them)."""
+    helps = _comment_help(table_type)
+    for spec in fields(table_type):
+        if spec.metadata.get("help"):
+            helps[spec.name] = spec.metadata["help"]
+    return helps
+
+
+def _comment_help(table_type: type) -> dict[str, str]:
+    """The first sentence of the comment above each field of a dataclass (or of the comment
+    beside it, when there is none above)."""
     try:
         source = textwrap.dedent(inspect.getsource(table_type))
     except (OSError, TypeError):
