@@ -183,7 +183,7 @@ def connected_labels(n: int, pairs: np.ndarray) -> np.ndarray:
     """Connected components of n nodes linked by `pairs` (k x 2), labelled 0.. in the order
     of each component's lowest node: scipy's `connected_components` labels, at a fraction
     of its cost on the few hundred voxels a call gets (its graph checks and sparse
-    conversions cost more than the search; bench: 1.7 -> 0.8 ms a call with the search).
+    conversions cost more than the search; docs/performance.md).
 
     Union by the lower root, then pointer jumping until every node points at its root;
     repeated until no pair joins two roots. The root of a component is its lowest node."""

@@ -78,7 +78,8 @@ class Cluster:
     """One cluster C_k. `centroid`, `num_points` and `ndvi` are the paper's m_k (centroid
     and count over the voxel grid's points); `hull_area`/`hull_volume` are the paper's
     suggested extra features (3D hull of the voxel points), computed when first read:
-    the association does not use them and qhull costs ~0.2 ms a cluster."""
+    the association does not use them, and qhull on every cluster of every scan would
+    be paid for nothing."""
 
     centroid: np.ndarray  # (3,) base frame
     num_points: int  # voxels
@@ -697,7 +698,7 @@ def _features(
         voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]] for k in range(len(kept))
     ]
     centroids = np.array([cells.mean(axis=0) for cells in cells_of]).reshape(-1, 3)
-    # The ground under every cluster's centroid in one call, not one call each (~20 us).
+    # The ground under every cluster's centroid in one call: each call has a fixed cost.
     ground_zs = np.atleast_1d(ground.z_at(centroids[:, 0], centroids[:, 1]))
     clusters = []
     for k, members in enumerate(members_of):

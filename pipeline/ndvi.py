@@ -131,7 +131,7 @@ class PixelNdvi:
     """The NDVI of a decoded image computed only at the pixels read, for a caller that
     samples a few thousand pixels of a 720p frame (`projection.point_ndvi`): indexing
     `[rows, cols]` gives exactly `ndvi_image(image, ...)[rows, cols]` (the formulas are
-    per pixel), without working out the other ~900 000 pixels (~10 ms a frame).
+    per pixel), without working out the other ~900 000 pixels of the frame.
 
     `reduction` r > 1: `image` is the frame decoded at 1/r of its size (`Frame.decode`);
     it is still indexed in full-size pixels (`shape` is the full size, `full_shape`), pixel

@@ -143,9 +143,10 @@ class OutputConfig:
             check=_between(0.01, MAX_PERIOD_S),
         ),
     )
-    # Every export rewrites every tree: ~0.4 s of CPU at 50,000 trees here (docs/
-    # performance.md), ~3x that on a Xavier. The store holds every scan as it comes; the
-    # files are a view of it, and a view a few seconds older costs the scans nothing.
+    # Every export rewrites every tree, so its cost grows with the survey (docs/
+    # performance.md, "Exports at 50,000 trees"), and more on the robot's slower cores.
+    # The store holds every scan as it comes; the files are a view of it, and a view a
+    # few seconds older costs the scans nothing.
     export_max_share: float = field(
         default=0.02,
         metadata=_key(

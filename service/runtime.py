@@ -232,7 +232,7 @@ class Service:
             raise
         # What is in memory now (modules, the field map, the config) lives as long as the
         # run: left out of the collector's full passes, which otherwise walk it each time
-        # (bench/scale.py at 20,000 trees: 1.42 -> 0.94 s of full collections).
+        # (docs/performance.md, "The service").
         gc.collect()
         gc.freeze()
         for worker in self.workers:
@@ -255,8 +255,9 @@ class Service:
         from treetraits.service.survey import make_processor, start_facts
 
         self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
-        # Before READY: the first scans would otherwise wait ~1-2 s for the imports (and
-        # longer for a kernel to compile), a backlog past max_backlog_s.
+        # Before READY: the first scans would otherwise wait for the imports (seconds:
+        # filterpy's pulls in scipy.stats) and longer for a kernel to compile, a backlog
+        # past max_backlog_s.
         load_pipeline()
         if self.cfg.service.max_backlog_s > 0:
             limit_ns = round(self.cfg.service.max_backlog_s * 1e9)
