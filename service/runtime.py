@@ -482,11 +482,6 @@ class Service:
         self._stop.set()
         self._wake.set()
 
-    def request_stop(self) -> None:
-        """Stop as on SIGTERM (for callers running the loop on another thread)."""
-        self._stop.set()
-        self._wake.set()
-
     def _shutdown(self) -> int:
         begun = time.monotonic()
         self.notifier.stopping(self._status(begun))
