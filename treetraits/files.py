@@ -69,13 +69,18 @@ def write_atomically(
         with contextlib.suppress(FileNotFoundError):
             os.unlink(temp)
         raise
-    # The rename is durable only once the directory is on disk too.
-    with contextlib.suppress(OSError):  # not every filesystem lets a directory be fsynced
-        directory = os.open(target.parent, os.O_RDONLY)
+    fsync_directory(target.parent)  # the rename is durable only once it is on disk too
+
+
+def fsync_directory(directory: str | os.PathLike) -> None:
+    """fsync a directory, so that the entries made or renamed in it survive a power cut;
+    not every filesystem lets a directory be fsynced, and there it is skipped."""
+    with contextlib.suppress(OSError):
+        fd = os.open(directory, os.O_RDONLY)
         try:
-            os.fsync(directory)
+            os.fsync(fd)
         finally:
-            os.close(directory)
+            os.close(fd)
 
 
 def _create_beside(target: Path) -> tuple[Path, int]:
