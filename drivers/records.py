@@ -36,8 +36,9 @@ POINT_DTYPE = np.dtype(
 def row_items(array: np.ndarray) -> np.ndarray:
     """The array's rows (along its first axis) as a 1-D array of opaque items over the
     same memory: a mask or an index then copies each row as one block of bytes. NumPy
-    copies a packed structured dtype field by field, record by record (~35 ns a point,
-    30x the copy of the same bytes), and a 2-D array's rows value by value. A plain 1-D
+    copies a packed structured dtype field by field, record by record (many times the
+    cost of copying the same bytes: docs/performance.md), and a 2-D array's rows value by
+    value. A plain 1-D
     array is returned as it is: its items are copied natively already. A 2-D array must be
     C-contiguous (a copy otherwise, which writes would not reach)."""
     if array.ndim == 1 and array.dtype.fields is None:
@@ -49,7 +50,7 @@ def row_items(array: np.ndarray) -> np.ndarray:
 
 def take_points(points: np.ndarray, index: np.ndarray | slice) -> np.ndarray:
     """`points[index]` (a new array) for a structured array such as `POINT_DTYPE`, copied
-    as whole records (`row_items`: 0.6 -> 0.016 ms for a 17k-point scan)."""
+    as whole records (`row_items`), not field by field as NumPy would."""
     taken = row_items(points)[index]
     if isinstance(index, slice):
         taken = taken.copy()  # a slice is a view
@@ -160,8 +161,7 @@ class Frame:
 
         libjpeg-turbo through simplejpeg: the same pixels as OpenCV's `imdecode` (its
         libjpeg-turbo, the same accurate DCT and smooth chroma upsampling; a test holds them
-        equal) in less time: a 720p frame at half size 1.67 against 2.45 ms decoded alone
-        here, 1.6-1.75 against 1.7-2.1 ms inside a replay (docs/performance.md, round 9).
+        equal) in less time, with no OpenCV layer in between (docs/performance.md).
         Damage is taken as `imdecode` takes it: a frame cut short (the decoder runs out of
         data: its lower rows would be filler) is refused, other damage the decoder recovers
         from (a flipped bit, a frame cut and closed) is decoded."""

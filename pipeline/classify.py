@@ -18,8 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from treetraits.jit import kernel, warm_up
-from treetraits.pipeline.clustering import kernel_layout
+from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.config import ClassifyConfig
 
 TREE = "tree"
@@ -311,7 +310,7 @@ def _median_of_groups(values: np.ndarray, owner: np.ndarray, groups: int) -> np.
 def median(values: np.ndarray) -> float:
     """`float(np.median(values))` of a 1-D float array, by one partition: the same
     middle values and the same mean of the two, NaN when any value is NaN, without
-    np.median's generic machinery (~8 us a call; it runs a few times per cluster)."""
+    np.median's generic machinery, whose cost is paid a few times per cluster."""
     n = len(values)
     if n == 0:
         return math.nan

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from treetraits.jit import kernel, warm_up
+from treetraits.jit import kernel, kernel_layout, warm_up
 
 
 def euclidean_clusters(xyz: np.ndarray, tolerance: float, method: str = "kdtree") -> np.ndarray:
@@ -183,7 +183,7 @@ def connected_labels(n: int, pairs: np.ndarray) -> np.ndarray:
     """Connected components of n nodes linked by `pairs` (k x 2), labelled 0.. in the order
     of each component's lowest node: scipy's `connected_components` labels, at a fraction
     of its cost on the few hundred voxels a call gets (its graph checks and sparse
-    conversions cost more than the search; bench: 1.7 -> 0.8 ms a call with the search).
+    conversions cost more than the search; docs/performance.md).
 
     Union by the lower root, then pointer jumping until every node points at its root;
     repeated until no pair joins two roots. The root of a component is its lowest node."""
@@ -239,17 +239,6 @@ def nearest_label(points: np.ndarray, anchors: np.ndarray, labels: np.ndarray) -
     from scipy.spatial import cKDTree  # anchors of two labels at the same distance
 
     return labels[cKDTree(anchors).query(points)[1]]
-
-
-def kernel_layout(array: np.ndarray, dtype: type = np.float64) -> np.ndarray:
-    """The one layout the kernels are compiled for (numba compiles anew for each). An
-    array already in it is returned as np.require would, without its ~1.5 us of checks
-    (a scan asks ~80 times)."""
-    if isinstance(array, np.ndarray):
-        flags = array.flags
-        if flags.c_contiguous and flags.writeable and array.dtype == dtype:
-            return array
-    return np.require(array, dtype, ["C", "W"])
 
 
 @kernel

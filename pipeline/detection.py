@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from treetraits.drivers.records import POINT_DTYPE
-from treetraits.jit import kernel, warm_up
+from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.classify import (
     Shape,
     horizontal_extent,
@@ -78,7 +78,8 @@ class Cluster:
     """One cluster C_k. `centroid`, `num_points` and `ndvi` are the paper's m_k (centroid
     and count over the voxel grid's points); `hull_area`/`hull_volume` are the paper's
     suggested extra features (3D hull of the voxel points), computed when first read:
-    the association does not use them and qhull costs ~0.2 ms a cluster."""
+    the association does not use them, and qhull on every cluster of every scan would
+    be paid for nothing."""
 
     centroid: np.ndarray  # (3,) base frame
     num_points: int  # voxels
@@ -173,8 +174,7 @@ assert [POINT_DTYPE.fields[f][1] for f in ("x", "y", "z")] == [0, 4, 8]
 def _point_words(points: np.ndarray) -> np.ndarray:
     """POINT_DTYPE points as a writable C-ordered (points, 7) float32 view (copied when
     they are not so): the one layout `_crop_level` is compiled for."""
-    if not (points.flags.c_contiguous and points.flags.writeable):
-        points = np.array(points, order="C")
+    points = kernel_layout(points, points.dtype)
     return points.view(np.float32).reshape(len(points), _WORDS)
 
 
@@ -698,7 +698,7 @@ def _features(
         voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]] for k in range(len(kept))
     ]
     centroids = np.array([cells.mean(axis=0) for cells in cells_of]).reshape(-1, 3)
-    # The ground under every cluster's centroid in one call, not one call each (~20 us).
+    # The ground under every cluster's centroid in one call: each call has a fixed cost.
     ground_zs = np.atleast_1d(ground.z_at(centroids[:, 0], centroids[:, 1]))
     clusters = []
     for k, members in enumerate(members_of):

@@ -36,8 +36,9 @@ from treetraits.pipeline.projection import (
 # 2 deg (~25 px) apart, so at half size each point still reads a pixel of its own, now the
 # mean of the 2 x 2 it covered (at a quarter, most neighbours along a ring would share
 # one). Measured on the demo survey: every tree's NDVI within 0.0041 of the full-size
-# decode (widths, heights, positions and observations unchanged); the decode of a 720p
-# frame ~7.6 -> ~5.0 ms. Projection and occlusion stay at full size.
+# decode (widths, heights, positions and observations unchanged), and the decode, a large
+# part of a scan's cost, is cheaper (docs/performance.md). Projection and occlusion stay
+# at full size.
 MAPPER_REDUCTION = 2
 
 # Frame-level reasons, each counted by the caller.

@@ -16,19 +16,17 @@ built once per run by the caller that georeferences after every scan).
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import math
 import os
-import tempfile
 from collections.abc import Callable, Container, Iterable, Sequence
-from pathlib import Path
 from typing import Any, Protocol, TextIO
 
 import numpy as np
 
+from treetraits.files import write_atomically
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.localization.utm import UtmGrid
@@ -267,8 +265,8 @@ class RenderCache:
     export) formats only the new ones. Holds the records of the last write only.
 
     The very same record object is found by its id (it is held here, so the id is not
-    reused); only the others are looked up by value, whose hash runs over all ~20 fields
-    (at 20,000 trees, ~45 ms of every export under a profiler)."""
+    reused); only the others are looked up by value, whose hash runs over all ~20 fields,
+    for every tree at every export."""
 
     def __init__(self) -> None:
         self._by_object: dict[int, tuple[Tree, str]] = {}
@@ -306,7 +304,7 @@ def write_trees_csv(
         csv.writer(f, lineterminator="\n").writerow(CSV_COLUMNS)
         f.writelines(lines)
 
-    _write_atomically(path, write)
+    write_atomically(path, write, permissions=0o644)
 
 
 def _csv_line(tree: Tree) -> str:
@@ -338,7 +336,7 @@ def write_trees_geojson(
             f.write("\n ")
         f.write("]\n}\n")
 
-    _write_atomically(path, write)
+    write_atomically(path, write, permissions=0o644)
 
 
 def _feature_text(tree: Tree) -> str:
@@ -360,27 +358,3 @@ def _feature(tree: Tree) -> dict[str, Any]:
         "geometry": point_geometry(tree.lat, tree.lon),
         "properties": geojson_properties(tree),
     }
-
-
-def _write_atomically(path: str | os.PathLike, write: Callable[[TextIO], None]) -> None:
-    """Write to a temp file beside `path`, fsync, rename over `path`, fsync the directory:
-    a reader (or a power cut) sees the old file or the new one, never a part."""
-    target = Path(path)
-    fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with open(fd, "w", encoding="utf-8", newline="") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(temp, 0o644)  # mkstemp makes it 0600
-        os.replace(temp, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temp)
-        raise
-    with contextlib.suppress(OSError):  # not every filesystem lets a directory be fsynced
-        directory = os.open(target.parent, os.O_RDONLY)
-        try:
-            os.fsync(directory)
-        finally:
-            os.close(directory)

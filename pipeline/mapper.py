@@ -15,9 +15,8 @@ import numpy as np
 
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Scan, take_points
-from treetraits.jit import kernel, warm_up
+from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.classify import FLOATING, LOW, TREE, Votes
-from treetraits.pipeline.clustering import kernel_layout
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx

@@ -1,9 +1,8 @@
 """NDVI from a Survey3N RGN image: raw values -> reflectance -> NDVI -> vegetation mask.
 
 Also the pieces of the reflectance calibration (the MAPIR target V2: find its panels, take
-their mean raw values, fit `reflectance = gain * raw + offset` per band) and a channel-order
-sanity check for `doctor`. Pure functions over arrays; formulas and defaults are in
-docs/ndvi_projection.md.
+their mean raw values, fit `reflectance = gain * raw + offset` per band). Pure functions
+over arrays; formulas and defaults are in docs/ndvi_projection.md.
 """
 
 from __future__ import annotations
@@ -131,7 +130,7 @@ class PixelNdvi:
     """The NDVI of a decoded image computed only at the pixels read, for a caller that
     samples a few thousand pixels of a 720p frame (`projection.point_ndvi`): indexing
     `[rows, cols]` gives exactly `ndvi_image(image, ...)[rows, cols]` (the formulas are
-    per pixel), without working out the other ~900 000 pixels (~10 ms a frame).
+    per pixel), without working out the other ~900 000 pixels of the frame.
 
     `reduction` r > 1: `image` is the frame decoded at 1/r of its size (`Frame.decode`);
     it is still indexed in full-size pixels (`shape` is the full size, `full_shape`), pixel
@@ -397,90 +396,3 @@ def find_target_v2(image: np.ndarray) -> tuple[list[Box], np.ndarray]:
             )
         boxes.append(Box(x0, y0, x1 - x0, y1 - y0))
     return boxes, corners
-
-
-# --- channel-order check (for `doctor`) --------------------------------------------------
-
-
-@dataclass(frozen=True)
-class FoliageCheck:
-    """The evidence for (or against) the claimed NIR channel; truthy when it holds."""
-
-    ok: bool
-    reason: str
-    pixels: int  # foliage pixels looked at
-    brightest_channel: int | None  # the channel brightest on most of them
-    nir_brightest_fraction: float  # of those pixels, where the claimed NIR channel is brightest
-    channel_means: tuple[float, ...]  # mean raw value per image channel over them
-    ndvi_median: float  # with raw / 255 as reflectance
-
-    def __bool__(self) -> bool:
-        return self.ok
-
-
-def nir_is_brightest_on_foliage(
-    image: np.ndarray,
-    channels: Mapping[str, int],
-    foliage: np.ndarray | None = None,
-    *,
-    min_fraction: float = 0.8,
-    min_ndvi: float = 0.3,
-    min_pixels: int = 500,
-) -> FoliageCheck:
-    """Does the claimed NIR channel behave like NIR on sunlit foliage?
-
-    Leaves reflect NIR far more than red, so on foliage the NIR channel must be the
-    brightest on most pixels (`min_fraction`) and NDVI (raw / 255 as reflectance, no
-    calibration needed) must exceed `min_ndvi` (docs/camera.md). `foliage` is a mask of
-    the pixels to judge; without one, the pixels are picked without trusting any channel
-    order: well exposed (brightest channel in 20..250) and in the top quarter of channel
-    spread (max - min), which in an RGN image of a tree is the foliage. The result is
-    truthy when the mapping holds and carries the numbers either way.
-    """
-    data = image.reshape(-1, image.shape[-1]).astype(np.int16)
-    if foliage is None:
-        high, low = data.max(axis=1), data.min(axis=1)
-        exposed = (high >= 20) & (high <= 250)
-        spread = high - low
-        chosen = exposed.copy()
-        if exposed.any():
-            chosen &= spread >= np.percentile(spread[exposed], 75)
-            chosen &= spread > 0
-    else:
-        chosen = np.asarray(foliage, dtype=bool).reshape(-1)
-    pixels = data[chosen]
-    nir = channels["nir"]
-    if len(pixels) < min_pixels:
-        return FoliageCheck(
-            False,
-            f"only {len(pixels)} foliage pixels (need {min_pixels}): point the camera at "
-            f"sunlit leaves",
-            len(pixels),
-            None,
-            float("nan"),
-            tuple(float("nan") for _ in range(data.shape[1])),
-            float("nan"),
-        )
-    brightest = np.argmax(pixels, axis=1)
-    counts = np.bincount(brightest, minlength=data.shape[1])
-    fraction = float(np.mean(brightest == nir))
-    values = ndvi(pixels[:, nir] / 255.0, pixels[:, channels["red"]] / 255.0)
-    median = float(np.nanmedian(values)) if np.isfinite(values).any() else float("nan")
-    ok = fraction >= min_fraction and median > min_ndvi
-    if ok:
-        reason = f"NIR (channel {nir}) brightest on {fraction:.0%} of foliage, NDVI {median:.2f}"
-    else:
-        reason = (
-            f"claimed NIR channel {nir} brightest on only {fraction:.0%} of foliage pixels "
-            f"(channel {int(np.argmax(counts))} is brightest most often), NDVI median "
-            f"{median:.2f}: check camera.channels, or that the image shows sunlit leaves"
-        )
-    return FoliageCheck(
-        ok,
-        reason,
-        len(pixels),
-        int(np.argmax(counts)),
-        fraction,
-        tuple(float(v) for v in pixels.mean(axis=0)),
-        median,
-    )

@@ -27,9 +27,9 @@ from functools import cached_property
 
 import numpy as np
 
-from treetraits.jit import kernel, warm_up
+from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.classify import median, roughness
-from treetraits.pipeline.clustering import kernel_layout, stable_order
+from treetraits.pipeline.clustering import stable_order
 from treetraits.pipeline.config import ClassifyConfig, ClusterConfig
 
 # The VLP-16's rings are 2 deg apart: on an upright surface at range r they land

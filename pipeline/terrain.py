@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from treetraits.jit import kernel, warm_up
+from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.config import TerrainConfig
 
 
@@ -50,14 +50,14 @@ class TerrainGrid:
         x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
         out = np.empty(x.shape)
         _bilinear(
-            _c_float64(self.z).ravel(),
+            kernel_layout(self.z).ravel(),
             self.z.shape[0],
             self.z.shape[1],
             float(self.x0),
             float(self.y0),
             float(self.cell),
-            _c_float64(x).ravel(),
-            _c_float64(y).ravel(),
+            kernel_layout(x).ravel(),
+            kernel_layout(y).ravel(),
             out.reshape(-1),
         )
         return float(out) if out.ndim == 0 else out
@@ -69,15 +69,6 @@ class TerrainGrid:
     @property
     def ground_cells(self) -> int:
         return int(self.ground.sum())
-
-
-def _c_float64(values: np.ndarray) -> np.ndarray:
-    """`values` as a writable C-ordered float64 array, copied only when it is not one: the
-    one layout the kernels are compiled for (numba compiles anew for readonly or strided)."""
-    flags = values.flags
-    if values.dtype == np.float64 and flags.c_contiguous and flags.writeable:
-        return values
-    return np.array(values, dtype=np.float64, order="C")
 
 
 @kernel
@@ -155,7 +146,7 @@ def _lowest_layer(xyz, config: TerrainConfig, x0, y0, nx, ny) -> np.ndarray:
     lowest (the minimum alone sits ~2 sigma of range noise low); NaN where no return."""
     mean = np.empty(nx * ny)
     _lowest_layer_mean(
-        _c_float64(xyz), float(x0), float(y0), float(config.cell_m), nx, ny,
+        kernel_layout(xyz), float(x0), float(y0), float(config.cell_m), nx, ny,
         float(config.lowest_layer_m), mean,
     )  # fmt: skip
     return mean.reshape(nx, ny)
@@ -198,7 +189,7 @@ def _grow(lowest, observed, ground, accepted, config: TerrainConfig) -> np.ndarr
     if not accepted.any():  # nothing to grow from: no cell is taken
         return np.full(lowest.shape, np.nan)
     c = config.cell_m
-    lowest = _c_float64(lowest)
+    lowest = kernel_layout(lowest)
     ground = np.array(ground, dtype=np.float64, order="C")  # grown in place, as are:
     accepted = np.array(accepted, dtype=bool, order="C")
     pending = observed & ~accepted
@@ -277,7 +268,7 @@ def _median3(ground: np.ndarray) -> np.ndarray:
     trunk's or a post's foot in a cell without soil returns sits a few cm up; a median
     drops such a one-cell bump and keeps slopes and furrows (NaN: not ground)."""
     out = np.empty(ground.shape)
-    _median3_cells(_c_float64(ground), out)
+    _median3_cells(kernel_layout(ground), out)
     return out
 
 
@@ -334,7 +325,7 @@ def _gaussian(
     `_gaussian_weights`: its two correlations, along the first axis and then along the
     second, compiled (`_correlate_twice`). Only at the `wanted` cells (all when None):
     NaN elsewhere."""
-    values = _c_float64(values)
+    values = kernel_layout(values)
     if wanted is None:
         wanted = np.ones(values.shape, dtype=bool)
     out = np.full(values.shape, np.nan)

@@ -23,8 +23,7 @@ import math
 
 import numpy as np
 
-from treetraits.jit import kernel, warm_up
-from treetraits.pipeline.clustering import kernel_layout
+from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.config import TraitsConfig
 
 # Bearings for the per-slice upper bound: a set's true diameter D is at most its largest

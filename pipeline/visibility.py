@@ -26,8 +26,7 @@ import math
 
 import numpy as np
 
-from treetraits.jit import kernel, warm_up
-from treetraits.pipeline.clustering import kernel_layout
+from treetraits.jit import kernel, kernel_layout, warm_up
 
 # The sensor's top beam, not the highest that hit something in a scan (over a young
 # grove the top beams may see only sky): every model read has 16 beams

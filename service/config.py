@@ -143,9 +143,10 @@ class OutputConfig:
             check=_between(0.01, MAX_PERIOD_S),
         ),
     )
-    # Every export rewrites every tree: ~0.4 s of CPU at 50,000 trees here (docs/
-    # performance.md), ~3x that on a Xavier. The store holds every scan as it comes; the
-    # files are a view of it, and a view a few seconds older costs the scans nothing.
+    # Every export rewrites every tree, so its cost grows with the survey (docs/
+    # performance.md, "Exports at 50,000 trees"), and more on the robot's slower cores.
+    # The store holds every scan as it comes; the files are a view of it, and a view a
+    # few seconds older costs the scans nothing.
     export_max_share: float = field(
         default=0.02,
         metadata=_key(
@@ -538,7 +539,7 @@ def _dump_table(name: str, content: Any, comments: bool, lines: list[str]) -> No
             continue
         assignment = f"{spec.name} = {_toml_value(value)}"
         if comments:
-            note = spec.metadata.get("help") or helps.get(spec.name, "")
+            note = helps.get(spec.name, "")
             default = _default(spec)
             if value != default:
                 note = f"{note} [default {_toml_value(default)}]".strip()
@@ -551,8 +552,20 @@ def _dump_table(name: str, content: Any, comments: bool, lines: list[str]) -> No
 
 @functools.cache
 def field_help(table_type: type) -> dict[str, str]:
-    """The first sentence of the comment above each field of a dataclass: the reasons for
-    the pipeline's values live there, once, and `config dump` shows them."""
+    """The help `config dump` gives each key of a section: the field's `_key` help where it
+    has one (the service's own sections, written as help), else the first sentence of
+    the comment above the field (the pipeline's sections: the reasons for their values
+    live there, once, and the help is taken from them)."""
+    helps = _comment_help(table_type)
+    for spec in fields(table_type):
+        if spec.metadata.get("help"):
+            helps[spec.name] = spec.metadata["help"]
+    return helps
+
+
+def _comment_help(table_type: type) -> dict[str, str]:
+    """The first sentence of the comment above each field of a dataclass (or of the comment
+    beside it, when there is none above)."""
     try:
         source = textwrap.dedent(inspect.getsource(table_type))
     except (OSError, TypeError):

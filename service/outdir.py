@@ -35,6 +35,7 @@ from treetraits.errors import (
     OutputExistsError,
     TreetraitsError,
 )
+from treetraits.files import fsync_directory
 
 LOCK_NAME = ".treetraits.lock"
 
@@ -242,7 +243,7 @@ class OutputDir:
             except OSError as exc:
                 raise FileAccessError(f"{aside}: outputs not moved aside ({_text(exc)})") from exc
             self.staging = None  # moved: nothing to remove
-            _fsync_directory(self.directory)
+            fsync_directory(self.directory)
             self.placed = aside
             return
         self._replace()
@@ -263,18 +264,9 @@ class OutputDir:
             raise FileAccessError(
                 f"{self.directory}: outputs not moved into place ({_text(exc)})"
             ) from exc
-        _fsync_directory(self.directory)
+        fsync_directory(self.directory)
 
     def _release(self) -> None:
         if self._lock is not None:
             lock, self._lock = self._lock, None
             lock.__exit__(None, None, None)
-
-
-def _fsync_directory(directory: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)

@@ -18,7 +18,6 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from treetraits import __version__
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration, load_calibration
 from treetraits.drivers.velodyne.sources import open_source
@@ -35,7 +34,7 @@ from treetraits.service.outputs import (
     RunWriter,
     next_export_after,
 )
-from treetraits.service.survey import make_processor
+from treetraits.service.survey import make_processor, start_facts
 
 
 @dataclass(frozen=True)
@@ -300,13 +299,7 @@ def run_replay(
         (out_dir / stale).unlink(missing_ok=True)  # a replay is a run of its own
     processor = make_processor(cfg, calibration)
     summary = {
-        "software": f"treetraits {__version__}",
-        "input": str(path),
-        "method": cfg.pipeline.method,
-        "traits": cfg.traits.method,
-        "calibration": calibration.to_json(),
-        # What took the format's default (no camera: no NDVI), said, never silent.
-        "calibration_defaults": list(calibration.defaults),
+        **start_facts(cfg, calibration, str(path)),
         # The field map used, and from where: a recording cut before its attachment
         # replays without one, and says so (treetraits/cli/replay.py).
         "field_map": {"source": inputs.field_map_source, "trees": len(field_map)},
@@ -346,18 +339,7 @@ def run_replay(
             matched=sum(t.field_id is not None for t in trees),
             missing=len(exported.missing),
             rejected=dict(sorted(Counter(t.reason for t in exported.rejected).items())),
-            world_frame=processor.world_frame,
-            reanchored_at=processor.stats.reanchored_at,
-            utm_zone=processor.localizer.grid.name if processor.localizer.grid else None,
-            scans_without_pose=processor.stats.scans_without_pose,
-            scans_without_heading=processor.stats.scans_without_heading,
-            fixes=processor.stats.fixes,
-            gnss_latency_ms=processor.localizer.stats.latency_ms,
-            lidar_clock={
-                "scans_on_utc": processor.lidar_clock.stats.scans_on_utc,
-                "host_minus_utc_ms": processor.lidar_clock.stats.host_minus_utc_ms,
-            },
-            frames=processor.stats.frames,
+            **processor.facts(live=False),
             **source.integrity(),
             # As the service says how its run ended (docs/service.md): the exports were
             # rewritten from the store after the last scan, so they hold what it holds.

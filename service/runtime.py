@@ -33,15 +33,14 @@ import signal
 import threading
 import time
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 
-from treetraits import __version__
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.times import NmeaClock
 from treetraits.drivers.velodyne.packet import lidar_publish_time
 from treetraits.errors import ConfigError, TreetraitsError
+from treetraits.files import utc_stamp
 from treetraits.service.config import ServiceConfig, dump_config
 from treetraits.service.health import assess, status_line
 from treetraits.service.notify import Notifier
@@ -66,34 +65,27 @@ JOIN_S = 1.0  # then each receive thread gets this long to end
 IDLE_WAIT_S = 0.1  # with every queue empty, the loop sleeps at most this long
 BATCH = 256  # items between two looks at the clock (exports, status, watchdog)
 GATHER_S = 0.01  # once woken from idle, the loop waits this long for more items
-PIPELINE_MODULES = (
+# What the pipeline imports where it is used (first scans would wait for them).
+PIPELINE_IMPORTS = (
     "cv2",
     "filterpy.kalman",
     "scipy.ndimage",
     "scipy.optimize",
     "scipy.spatial",
     "treetraits.pipeline.fusion",
-    # Every module with compiled kernels (treetraits.jit), for their warm-ups.
-    "treetraits.drivers.velodyne.packet",
-    "treetraits.pipeline.classify",
-    "treetraits.pipeline.clustering",
-    "treetraits.pipeline.deskew",
-    "treetraits.pipeline.detection",
-    "treetraits.pipeline.mapper",
-    "treetraits.pipeline.projection",
-    "treetraits.pipeline.stems",
-    "treetraits.pipeline.terrain",
-    "treetraits.pipeline.traits",
 )
+# Where the modules with compiled kernels are looked for (treetraits.jit.kernel_modules).
+KERNEL_PACKAGES = ("treetraits.drivers", "treetraits.pipeline")
 
 
 def load_pipeline() -> None:
-    """Import what the pipeline imports where it is used, and compile every kernel or load
-    it from numba's cache (treetraits.jit). The service does it before READY;
-    `make install` once as the service's user, to fill the unit's cache."""
-    from treetraits.jit import compile_all
+    """Import what the pipeline imports where it is used and every module with compiled
+    kernels, and compile each kernel or load it from numba's cache (treetraits.jit). The
+    service does it before READY; `make install` once as the service's user, to fill the
+    unit's cache."""
+    from treetraits.jit import compile_all, kernel_modules
 
-    for module in PIPELINE_MODULES:
+    for module in (*PIPELINE_IMPORTS, *kernel_modules(*KERNEL_PACKAGES)):
         importlib.import_module(module)
     compile_all()
 
@@ -109,12 +101,6 @@ class Counters:
     export_failures: int = 0
     recorded: int = 0
     problems: dict[str, str] = field(default_factory=dict)  # "store", "export", ... -> text
-
-
-def utc_stamp(moment: datetime | None = None) -> str:
-    """20261123T161800Z: a run's name, sortable, safe in a path."""
-    moment = moment or datetime.now(timezone.utc)
-    return moment.strftime("%Y%m%dT%H%M%SZ")
 
 
 def new_run_dir(root: Path, stamp: str) -> Path:
@@ -246,7 +232,7 @@ class Service:
             raise
         # What is in memory now (modules, the field map, the config) lives as long as the
         # run: left out of the collector's full passes, which otherwise walk it each time
-        # (bench/scale.py at 20,000 trees: 1.42 -> 0.94 s of full collections).
+        # (docs/performance.md, "The service").
         gc.collect()
         gc.freeze()
         for worker in self.workers:
@@ -266,11 +252,12 @@ class Service:
                 worker.play_video(start_ns)
 
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
-        from treetraits.service.survey import make_processor
+        from treetraits.service.survey import make_processor, start_facts
 
         self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
-        # Before READY: the first scans would otherwise wait ~1-2 s for the imports (and
-        # longer for a kernel to compile), a backlog past max_backlog_s.
+        # Before READY: the first scans would otherwise wait for the imports (seconds:
+        # filterpy's pulls in scipy.stats) and longer for a kernel to compile, a backlog
+        # past max_backlog_s.
         load_pipeline()
         if self.cfg.service.max_backlog_s > 0:
             limit_ns = round(self.cfg.service.max_backlog_s * 1e9)
@@ -289,14 +276,9 @@ class Service:
             field_map,
             self.cfg.output,
             facts={
-                "software": f"treetraits {__version__}",
-                "input": "live",
-                "method": self.cfg.pipeline.method,
-                "traits": self.cfg.traits.method,
+                **start_facts(self.cfg, calibration, "live"),
                 "started": self._stamp,
                 "config": dump_config(self.cfg, comments=False),
-                "calibration": calibration.to_json(),
-                "calibration_defaults": list(calibration.defaults),
                 # Until the run ends cleanly: a run killed outright stays "running".
                 "end": "running",
             },
@@ -500,11 +482,6 @@ class Service:
         self._stop.set()
         self._wake.set()
 
-    def request_stop(self) -> None:
-        """Stop as on SIGTERM (for callers running the loop on another thread)."""
-        self._stop.set()
-        self._wake.set()
-
     def _shutdown(self) -> int:
         begun = time.monotonic()
         self.notifier.stopping(self._status(begun))
@@ -556,17 +533,9 @@ class Service:
                 log.info("recording closed: %s", ", ".join(map(str, self.recorder.files)))
 
     def _set_final_facts(self) -> None:
-        processor = self.processor
         facts = {
             "scans": self.counters.scans,
-            "world_frame": processor.world_frame,
-            "utm_zone": processor.localizer.grid.name if processor.localizer.grid else None,
-            "scans_without_pose": processor.stats.scans_without_pose,
-            "scans_without_heading": processor.stats.scans_without_heading,
-            # Ready while the loop was more than service.max_backlog_s behind: not mapped.
-            "scans_shed": processor.stats.scans_shed,
-            "fixes": processor.stats.fixes,
-            "frames": processor.stats.frames,
+            **self.processor.facts(live=True),
             "stopped": utc_stamp(),
             "end": self.end_state(),
             # Items still queued when the drain limit ran out: received, never processed

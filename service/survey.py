@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from treetraits import __version__
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.epochs import NS_PER_DAY, EpochAssembler
@@ -84,6 +85,13 @@ FRAME_BUFFER = 30  # frames kept (3 s at 10 Hz)
 # An IMU silent for this long is not waited for (a Jackal recording without IMU, a link
 # that dropped it); roll and pitch are then those of the last samples, or 0.
 IMU_SILENCE_NS = 1_000_000_000
+
+
+# A replay never sheds scans, so it does not count them.
+LIVE_ONLY_FACTS = ("scans_shed",)
+# Not among the service's run facts: adding them changes what a live store holds, a
+# decision of its own rather than a side effect of building the facts in one place.
+REPLAY_ONLY_FACTS = ("reanchored_at", "gnss_latency_ms", "lidar_clock")
 
 
 @dataclass(frozen=True)
@@ -228,6 +236,31 @@ class SurveyProcessor:
         if (scan := self._batcher.flush()) is not None:
             self._add_scan(scan)
         return self._ready(end_of_input=True)
+
+    def facts(self, *, live: bool) -> dict[str, Any]:
+        """What the processing came to, for the run's facts (the store's `run` table, and
+        replay's summary): the world frame and UTM zone, the scans left unmapped and why,
+        the fixes and frames taken. `live`: the service's run (`scans_shed`), else a
+        replay's (`reanchored_at`, `gnss_latency_ms`, `lidar_clock`)."""
+        facts = {
+            "world_frame": self.world_frame,
+            "reanchored_at": self.stats.reanchored_at,
+            "utm_zone": self.localizer.grid.name if self.localizer.grid else None,
+            "scans_without_pose": self.stats.scans_without_pose,
+            "scans_without_heading": self.stats.scans_without_heading,
+            # Ready while the loop was more than service.max_backlog_s behind: not mapped.
+            "scans_shed": self.stats.scans_shed,
+            "fixes": self.stats.fixes,
+            "gnss_latency_ms": self.localizer.stats.latency_ms,
+            "lidar_clock": {
+                "scans_on_utc": self.lidar_clock.stats.scans_on_utc,
+                "host_minus_utc_ms": self.lidar_clock.stats.host_minus_utc_ms,
+            },
+            "frames": self.stats.frames,
+        }
+        for key in REPLAY_ONLY_FACTS if live else LIVE_ONLY_FACTS:
+            del facts[key]
+        return facts
 
     def _add_scan(self, scan: Scan) -> None:
         scan = self.lidar_clock.place(scan)
@@ -450,6 +483,20 @@ class SurveyProcessor:
             self.stats.scans += 1
             out.append(ScanOutcome(scan, pose, frame, result))
         return out
+
+
+def start_facts(config: ServiceConfig, calibration: Calibration, source: str) -> dict[str, Any]:
+    """The facts a run begins with, replay and live alike: what made it, from what input
+    (`source`: the recording's path, or "live"), with which methods and calibration."""
+    return {
+        "software": f"treetraits {__version__}",
+        "input": source,
+        "method": config.pipeline.method,
+        "traits": config.traits.method,
+        "calibration": calibration.to_json(),
+        # What took the format's default (no camera: no NDVI), said, never silent.
+        "calibration_defaults": list(calibration.defaults),
+    }
 
 
 def make_mapper(config: ServiceConfig, calibration: Calibration):

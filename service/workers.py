@@ -36,9 +36,10 @@ log = logging.getLogger("treetraits.service")
 
 READ_TIMEOUT_S = 0.25  # longest a receive blocks before it looks at stop()
 # Between two reads of the LiDAR's queued packets (7-8 data packets): as long as the
-# loop's own gathering (service/runtime.py GATHER_S), a tenth of a scan. A wake-up costs
-# the thread 25-85 us of CPU on the development VM; one a packet was most of its 5 % of a
-# core (754 packets/s: 5.4 %, 72 us a packet), one every 10 ms leaves 2.1 % (28 us).
+# loop's own gathering (service/runtime.py GATHER_S), a tenth of a scan. Each wake-up
+# costs the thread CPU of its own: one a packet was most of the thread's share of a core,
+# one every 10 ms leaves less than half of it (docs/performance.md, "Reading LiDAR
+# packets in bursts").
 LIDAR_BURST_GAP_S = 0.01
 RETRY_FIRST_S = 0.5  # first wait before trying a device that would not open again
 RETRY_MAX_S = 5.0

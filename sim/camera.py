@@ -27,8 +27,8 @@ SKY = (0.30, 0.30, 0.25)  # NDVI -0.09
 class CameraSettings:
     jpeg_quality: int = 90
     noise_dn: float = 1.5  # sensor noise, 8-bit digital numbers
-    # Ray-cast at this fraction of the resolution and scale up (1.0 = every pixel): a
-    # 720p frame costs ~0.3 s at full resolution, ~20 ms at 0.25.
+    # Ray-cast at this fraction of the resolution and scale up (1.0 = every pixel): the
+    # cost goes with the pixels cast, so 0.25 casts a sixteenth of them.
     render_scale: float = 1.0
 
 

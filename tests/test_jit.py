@@ -11,8 +11,8 @@ import sys
 import numpy as np
 
 from tests.helpers.paths import REPO
-from treetraits.jit import kernel
-from treetraits.pipeline.clustering import kernel_layout
+from treetraits.jit import kernel, kernel_layout, kernel_modules
+from treetraits.service.runtime import KERNEL_PACKAGES
 
 _LOAD_PIPELINE = """
 from treetraits import jit
@@ -110,3 +110,27 @@ def test_the_service_compiles_every_kernel_before_ready():
     )
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "", f"not compiled before READY: {run.stdout}"
+
+
+def test_kernel_modules_finds_the_modules_that_make_kernels(tmp_path, monkeypatch):
+    """What the service imports before READY is found in the source: a new module with
+    kernels cannot be left off a list."""
+    made = "from treetraits.jit import kernel\n\n\n@kernel\ndef f(a):\n    return a\n"
+    files = {
+        "__init__.py": "",
+        "made.py": made,
+        "plain.py": "def kernel(a):\n    return a\n",  # the name alone makes none
+        "inner/__init__.py": "",
+        "inner/deep.py": made.replace("@kernel", "@jit.kernel"),
+        "data/loose.py": made,  # not in a package: no module of ours
+    }
+    for name, text in files.items():
+        path = tmp_path / "probe" / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert sorted(kernel_modules("probe")) == ["probe.inner.deep", "probe.made"]
+
+
+def test_the_service_looks_for_kernels_wherever_there_are_some():
+    assert sorted(kernel_modules(*KERNEL_PACKAGES)) == sorted(_modules_with_kernels())

@@ -24,8 +24,9 @@ ROOTS = {
     "service": "treetraits.service",
     "sim": "treetraits.sim",
 }
-# What each layer may import of ours (docs/architecture.md); errors and the version are
-# the root package's and every layer may import them.
+# What each layer may import of ours (docs/architecture.md); errors, the version, the
+# kernels' decorator and the file helpers are the root package's and every layer may
+# import them.
 ALLOWED = {
     "treetraits.drivers": {"treetraits.drivers"},
     "treetraits.firmware_bridge": {"treetraits.firmware_bridge", "treetraits.drivers"},
@@ -52,7 +53,7 @@ ALLOWED = {
         "treetraits.drivers",
     },
 }
-SHARED = {"treetraits", "treetraits.errors", "treetraits.jit"}
+SHARED = {"treetraits", "treetraits.errors", "treetraits.jit", "treetraits.files"}
 
 
 def package_dirs() -> dict[str, Path]:

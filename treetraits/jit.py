@@ -7,8 +7,9 @@ disk by numba's cache: in NUMBA_CACHE_DIR when it is set (the systemd unit point
 its CacheDirectory), else in the `__pycache__` beside the module when that is writable,
 else in the user's cache directory. Where none of these can be written (source that is
 not a file), it is compiled in memory at every start. A module with kernels registers a
-`warm_up` that calls them as real data would; the service runs them all (`compile_all`)
-before READY.
+`warm_up` that calls them as real data would; the service imports every such module
+(`kernel_modules` finds them by their `@kernel` lines, so none is left off a list) and
+runs the warm-ups (`compile_all`) before READY.
 
 Compiling needs memory that is first written and then made executable, which a process
 under MemoryDenyWriteExecute (systemd) or PR_SET_MDWE refuses: `import numba` then fails,
@@ -17,8 +18,14 @@ and this module says so in a `PlatformError` instead of a traceback from llvmlit
 
 from __future__ import annotations
 
+import importlib.util
+import re
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
+
+import numpy as np
+from numpy.typing import DTypeLike
 
 from treetraits.errors import PlatformError
 
@@ -53,6 +60,45 @@ def warm_up(function: Callable[[], None]) -> Callable[[], None]:
     the types (and layouts) real data gives them. `compile_all` runs them."""
     _WARM_UPS.append(function)
     return function
+
+
+def kernel_layout(array: Any, dtype: DTypeLike = np.float64) -> np.ndarray:
+    """`array` in the one layout the kernels are compiled for (C-ordered, writable, of
+    `dtype`): numba compiles a kernel anew for a read-only or strided array. An array
+    already in it is returned as np.require would, without np.require's checks, which
+    cost more than the small arrays a scan passes its kernels many times over
+    (docs/performance.md)."""
+    if isinstance(array, np.ndarray):
+        flags = array.flags
+        if flags.c_contiguous and flags.writeable and array.dtype == dtype:
+            return array
+    return np.require(array, dtype, ["C", "W"])
+
+
+# A kernel's definition: `@kernel` (or `@jit.kernel`) at the start of a line.
+_KERNEL_LINE = re.compile(rb"^[ \t]*@(?:\w+\.)*kernel\b", re.MULTILINE)
+
+
+def kernel_modules(*packages: str) -> list[str]:
+    """The modules of `packages` (sub-packages included) that make compiled kernels, found
+    in their source, not by importing them: what `compile_all` needs imported, without a
+    hand-kept list that a new module with kernels could be left off."""
+    found = []
+    for package in packages:
+        spec = importlib.util.find_spec(package)
+        for location in (spec and spec.submodule_search_locations) or ():
+            root = Path(location)
+            for path in sorted(root.rglob("*.py")):
+                parts = path.relative_to(root).with_suffix("").parts
+                if parts[-1] == "__init__":
+                    parts = parts[:-1]
+                # A folder without __init__.py (data, scripts) holds no module of ours.
+                folders = (root.joinpath(*parts[:depth]) for depth in range(1, len(parts)))
+                if all((folder / "__init__.py").is_file() for folder in folders) and (
+                    _KERNEL_LINE.search(path.read_bytes())
+                ):
+                    found.append(".".join((package, *parts)))
+    return found
 
 
 def compile_all() -> None:

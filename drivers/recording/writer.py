@@ -27,6 +27,7 @@ from treetraits.drivers.recording.format import (
     U64,
     V11_TOPICS,
 )
+from treetraits.files import fsync_directory
 
 
 def _time_ns(value: int, what: str) -> int:
@@ -272,12 +273,7 @@ class RecordingWriter:
             return
         os.fsync(self._file.fileno())
         # The new directory entry too, so the file itself survives a power cut.
-        with contextlib.suppress(OSError):
-            fd = os.open(self._path.parent, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+        fsync_directory(self._path.parent)
 
     def __enter__(self) -> RecordingWriter:
         return self

@@ -7,10 +7,12 @@ epoch seconds to about 0.2 us).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
+from typing import IO
 
 import numpy as np
+
+from treetraits.files import write_atomically
 
 PCD_DTYPE = np.dtype(
     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("ring", "u1"), ("t", "<f8")]
@@ -38,16 +40,14 @@ def pcd_header(dtype: np.dtype, count: int) -> bytes:
 
 
 def write_pcd(path: str | Path, points: np.ndarray) -> None:
-    """Write scan points (`POINT_DTYPE`) as a binary PCD, atomically (temp file + rename)."""
+    """Write scan points (`POINT_DTYPE`) as a binary PCD, atomically (treetraits.files)."""
     rows = np.empty(len(points), dtype=PCD_DTYPE)
     for name in ("x", "y", "z", "intensity", "ring"):
         rows[name] = points[name]
     rows["t"] = points["t"] / 1e9
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+
+    def write(f: IO[bytes]) -> None:
         f.write(pcd_header(PCD_DTYPE, len(rows)))
         f.write(rows.tobytes())
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+
+    write_atomically(path, write, binary=True)

@@ -1,6 +1,8 @@
 """A LiDAR source and a scan batcher together: packets in, scans and telemetry out.
 
-This is what the CLI, the replay and the service use; each piece stays usable alone.
+The `lidar` commands (info, export, listen) and `fuse` read LiDAR data through it. Replay
+and the service do not: `SurveyProcessor` (service/survey.py) feeds packets from every
+sensor's messages to its own `ScanBatcher`. Each piece stays usable alone.
 """
 
 from __future__ import annotations

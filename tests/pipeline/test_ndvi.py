@@ -1,6 +1,6 @@
 """NDVI from synthetic RGN images of known reflectance, the vegetation mask at its bounds,
-the reflectance fit on a synthetic MAPIR target V2 (marker found, boxes given, through the
-CLI) and the channel-order check."""
+and the reflectance fit on a synthetic MAPIR target V2 (marker found, boxes given, through
+the CLI)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,6 @@ from treetraits.pipeline.ndvi import (
     fit_reflectance,
     ndvi,
     ndvi_image,
-    nir_is_brightest_on_foliage,
     reflectance,
     sample_panels,
     vegetation_mask,
@@ -314,38 +313,6 @@ def test_cli_fits_and_writes_the_reflectance_section(tmp_path):
     )
     assert wrong.returncode == 2 and "brightest panel first" in wrong.stderr
     assert "Traceback" not in wrong.stderr
-
-
-# --- channel order check -----------------------------------------------------------------
-
-
-def _foliage_photo() -> np.ndarray:
-    """RGN leaves (NIR 170-200, red ~40, green ~70) over greyish soil in the lower third."""
-    rng = np.random.default_rng(3)
-    image = np.empty((240, 320, 3), dtype=np.float64)
-    image[..., 0] = rng.normal(185, 10, image.shape[:2])  # NIR (BGR channel 0)
-    image[..., 1] = rng.normal(70, 8, image.shape[:2])
-    image[..., 2] = rng.normal(40, 6, image.shape[:2])
-    image[160:] = rng.normal(110, 6, (80, 320, 3))  # soil: all bands alike
-    return np.clip(image, 0, 255).astype(np.uint8)
-
-
-def test_nir_brightest_on_foliage_holds_for_the_rgn_mapping():
-    check = nir_is_brightest_on_foliage(_foliage_photo(), {"red": 2, "green": 1, "nir": 0})
-    assert check and check.ok
-    assert check.brightest_channel == 0 and check.nir_brightest_fraction > 0.99
-    assert check.ndvi_median > 0.6 and check.pixels > 10_000
-    assert check.channel_means[0] > check.channel_means[2]
-
-
-def test_nir_brightest_on_foliage_catches_a_swapped_mapping():
-    # The ROS 2 driver's guess for RGN (NIR in the red channel) on the same photo.
-    check = nir_is_brightest_on_foliage(_foliage_photo(), {"red": 1, "green": 0, "nir": 2})
-    assert not check
-    assert check.brightest_channel == 0 and check.nir_brightest_fraction < 0.01
-    assert "check camera.channels" in check.reason
-    dark = nir_is_brightest_on_foliage(np.zeros((50, 50, 3), np.uint8), {"red": 2, "nir": 0})
-    assert not dark and "foliage pixels" in dark.reason
 
 
 def test_ndvi_image_table_is_bit_identical_to_the_formulas():

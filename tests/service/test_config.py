@@ -11,9 +11,12 @@ import pytest
 from tests.helpers.paths import REPO
 from treetraits.cli import config as config_cli
 from treetraits.errors import ConfigError
+from treetraits.pipeline.config import CropConfig
 from treetraits.service.config import (
+    OutputConfig,
     ServiceConfig,
     dump_config,
+    field_help,
     load_config,
     parse_config,
     tomllib,
@@ -121,6 +124,20 @@ def test_dump_reads_back_to_an_equal_config(tmp_path):
     for comments in (True, False):
         text = dump_config(cfg, comments=comments)
         assert parse_config(tomllib.loads(text), base=tmp_path) == cfg
+
+
+def test_a_key_s_help_is_its_own_or_its_comment_s_first_sentence():
+    """One answer for `config dump`: a service key's `_key` help, else the first sentence
+    of the comment above the field (cut at 110 characters), else none."""
+    output = field_help(OutputConfig)
+    assert output["min_observations"] == "a tree seen in fewer scans is not reported"
+    assert output["export_max_share"].startswith("exports take at most this share")
+    crop = field_help(CropConfig)
+    assert crop["z_m"].startswith("From below any ground a 10 % slope puts within the box")
+    assert crop["x_m"].endswith("...") and len(crop["x_m"]) == 110
+    assert "y_m" not in crop  # its reason is x_m's
+    dumped = dump_config(ServiceConfig())
+    assert f"# {output['missing_range_m']}\n" in dumped and f"# {crop['z_m']}\n" in dumped
 
 
 def cli(argv: list[str]) -> int:

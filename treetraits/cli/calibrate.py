@@ -4,9 +4,7 @@ MAPIR reflectance target and write them into a calibration file."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -226,20 +224,11 @@ def _write_reflectance(path: Path, section: dict[str, list[float]]) -> None:
     except CalibrationError as exc:
         raise CalibrationError(f"{path}: not written: {exc}") from exc
     text = json.dumps(data, indent=2) + "\n"
-    directory = path.resolve().parent
-    import tempfile
+    from treetraits.files import write_atomically
 
-    fd, temp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
-    try:
-        with os.fdopen(fd, "w") as file:
-            file.write(text)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(temp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(temp)
-        raise
+    # Owner-only (0600), the mode mkstemp gave the file here: opening it to all readers
+    # is a decision of its own, not a side effect of sharing the writer.
+    write_atomically(path, lambda f: f.write(text), permissions=0o600)
 
 
 def _show(path: Path, image: np.ndarray, boxes: list[Box]) -> None:

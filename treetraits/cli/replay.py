@@ -104,6 +104,7 @@ def _nmea_offset(text: str) -> float | str:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from treetraits.files import utc_stamp
     from treetraits.service.config import load_config, with_method
     from treetraits.service.replay import (
         REPLAY_OUTPUTS,
@@ -146,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
             report = run_replay(args.input, staging, options, bar.update, inputs, stop)
             if report.summary["end"] != "complete":
                 # Never in place of an earlier complete run (--force): beside it.
-                output.keep_aside(f"interrupted-{_utc_stamp()}")
+                output.keep_aside(f"interrupted-{utc_stamp()}")
     finally:
         inputs.source.close()
     elapsed = time.perf_counter() - start
@@ -173,12 +174,6 @@ def run(args: argparse.Namespace) -> int:
     if summary["data_loss"]:
         print(f"DATA LOSS: {format_loss(summary)}")
     return status
-
-
-def _utc_stamp() -> str:
-    from datetime import datetime, timezone
-
-    return datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
 
 
 def _interrupted(reason: str, summary: dict, output: OutputDir) -> str:

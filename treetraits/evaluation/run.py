@@ -30,6 +30,7 @@ from treetraits.errors import ConfigError
 from treetraits.evaluation.cases import Case
 from treetraits.evaluation.methods import DEFAULT_METHODS, METHODS
 from treetraits.evaluation.metrics import Detection, detections_from_trees
+from treetraits.files import write_atomically
 from treetraits.service.config import ServiceConfig, with_method
 from treetraits.sim.run import SurveySettings
 
@@ -138,9 +139,9 @@ def simulate(case: Case, seed: int, cases_dir: Path) -> Simulated:
         "software": f"treetraits {__version__}",
         "settings": dataclasses.asdict(case.settings(seed)),
     }
-    temp = marker.with_suffix(".tmp")
-    temp.write_text(json.dumps(facts, indent=1, default=str))
-    os.replace(temp, marker)  # last: its presence means the recording is whole
+    text = json.dumps(facts, indent=1, default=str)
+    # Last, and whole or not at all: its presence means the recording is whole.
+    write_atomically(marker, lambda f: f.write(text))
     return Simulated(case.name, seed, path, truth, result.duration_s, elapsed, False)
 
 

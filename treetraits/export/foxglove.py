@@ -22,7 +22,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.drivers.records import Fix, Frame, Scan
 from treetraits.errors import ConfigError, OutputExistsError, ParseError, SourceError
+from treetraits.files import write_atomically
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.localization.pose import Pose
 
@@ -384,28 +385,27 @@ def export_foxglove(
 
         inputs = type(inputs)(inputs.source, load_calibration(run_calibration), inputs.field_map)
     report = ExportReport(os.fspath(source), os.fspath(output))
-    tmp = output.with_name(output.name + ".tmp")
+
+    def write(stream: IO[bytes]) -> None:
+        writer = FoxgloveWriter(stream)
+        _export(inputs, config, writer, report, progress)
+        writer.metadata(
+            METADATA_NAME,
+            {
+                "input": os.fspath(source),
+                "recording": os.fspath(recording),
+                "world_frame": report.world_frame or "",
+                "origin_x": repr(report.origin[0]) if report.origin else "",
+                "origin_y": repr(report.origin[1]) if report.origin else "",
+            },
+        )
+        writer.finish()
+        report.channels = dict(writer.counts)
+
     try:
-        with open(tmp, "wb") as stream:
-            writer = FoxgloveWriter(stream)
-            _export(inputs, config, writer, report, progress)
-            writer.metadata(
-                METADATA_NAME,
-                {
-                    "input": os.fspath(source),
-                    "recording": os.fspath(recording),
-                    "world_frame": report.world_frame or "",
-                    "origin_x": repr(report.origin[0]) if report.origin else "",
-                    "origin_y": repr(report.origin[1]) if report.origin else "",
-                },
-            )
-            writer.finish()
-            report.channels = dict(writer.counts)
-        os.replace(tmp, output)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
+        # Beside `output` and renamed when complete: a failed or interrupted export leaves
+        # the earlier file as it was.
+        write_atomically(output, write, binary=True)
     finally:
         inputs.source.close()
     return report

@@ -9,7 +9,8 @@ import os
 from collections.abc import Sequence
 from typing import Any, TextIO
 
-from treetraits.pipeline.georef import _write_atomically, point_geometry
+from treetraits.files import write_atomically
+from treetraits.pipeline.georef import point_geometry
 from treetraits.pipeline.linking import growth_per_30_days
 from treetraits.pipeline.trees import csv_cells, iso_utc, json_value
 from treetraits.season.store import VISIT_COLUMNS, SeasonTree
@@ -76,7 +77,7 @@ def write_season_csv(path: str | os.PathLike, trees: Sequence[SeasonTree]) -> No
                     ]
                 )
 
-    _write_atomically(path, write)
+    write_atomically(path, write, permissions=0o644)
 
 
 def write_season_geojson(path: str | os.PathLike, trees: Sequence[SeasonTree]) -> None:
@@ -100,7 +101,7 @@ def write_season_geojson(path: str | os.PathLike, trees: Sequence[SeasonTree]) -
         )
         f.write("\n")
 
-    _write_atomically(path, write)
+    write_atomically(path, write, permissions=0o644)
 
 
 def _round(value: float | None, decimals: int = 3) -> float | None:

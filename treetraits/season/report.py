@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from treetraits.errors import SourceError
-from treetraits.pipeline.georef import _write_atomically
+from treetraits.files import write_atomically
 from treetraits.pipeline.trees import TREE_FIELD, iso_utc
 
 # Trees whose histories the season page plots (the ones found in the most surveys).
@@ -445,7 +445,7 @@ def render_html(data: ReportData, colour: str = "height") -> str:
 
 def write_report(path: Path, data: ReportData, colour: str = "height") -> None:
     page = render_html(data, colour)
-    _write_atomically(path, lambda f: f.write(page))
+    write_atomically(path, lambda f: f.write(page), permissions=0o644)
 
 
 def _img(png_base64: str, alt: str) -> str:
