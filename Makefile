@@ -88,10 +88,14 @@ demo: setup
 	$(BIN)/treetraits sim --grid 5x5 --path straight --seed 0 --out $(DEMO_OUT)/survey.mcap --force
 	$(BIN)/treetraits replay $(DEMO_OUT)/survey.mcap --out $(DEMO_OUT) --force
 
+# The suite on TEST_WORKERS processes (pytest-xdist; `make test TEST_WORKERS=0` runs it in
+# one). Twin drives are simulated once and shared between them (tests/helpers/surveys.py).
+TEST_WORKERS ?= auto
+
 test: EXTRA_PACKAGES := $(TEST_PACKAGES)
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS)
 
 lint: setup
 	$(BIN)/ruff check .
