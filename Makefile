@@ -89,13 +89,14 @@ demo: setup
 	$(BIN)/treetraits replay $(DEMO_OUT)/survey.mcap --out $(DEMO_OUT) --force
 
 # The suite on TEST_WORKERS processes (pytest-xdist; `make test TEST_WORKERS=0` runs it in
-# one). Twin drives are simulated once and shared between them (tests/helpers/surveys.py).
+# one). A test module stays on one worker (--dist loadfile): its module fixtures are built
+# once, and two workers never wait on the same twin drive (tests/helpers/surveys.py).
 TEST_WORKERS ?= auto
 
 test: EXTRA_PACKAGES := $(TEST_PACKAGES)
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -n $(TEST_WORKERS)
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 lint: setup
 	$(BIN)/ruff check .
