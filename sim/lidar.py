@@ -42,6 +42,7 @@ class LidarSettings:
     # on a stock Jackal) the ToH counts from power-on and position packets are not sent.
     gps_sync: bool = False
     power_on_s: float = 1234.567  # how long a sensor without GPS input has been running
+    enabled: bool = True  # False: the sensor sends nothing (a drive of GNSS and wheels only)
 
 
 @dataclass(frozen=True)

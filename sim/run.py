@@ -86,7 +86,7 @@ class SurveySettings:
     # The host's realtime clock minus UTC (s): a robot without NTP in the field. Every
     # message's log_time (and the camera's and wheels' host-clock stamps) carries it.
     host_clock_offset_s: float = 0.0
-    camera_rate_hz: float = 10.0
+    camera_rate_hz: float = 10.0  # 0: no camera in the recording
     camera: CameraSettings = field(default_factory=lambda: CameraSettings(render_scale=0.25))
     lidar: LidarSettings = field(default_factory=LidarSettings)
     gnss: GnssSettings = field(default_factory=GnssSettings)
@@ -304,7 +304,8 @@ def simulate_survey(
     zone = UtmZone(UTM_ZONE)
     place = placement(s)
     lidar = Vlp16Emulator(scene, calibration.T_base_lidar, s.lidar, rng)
-    camera = Survey3Emulator(scene, calibration, s.camera, rng) if calibration.camera else None
+    with_camera = calibration.camera is not None and s.camera_rate_hz > 0
+    camera = Survey3Emulator(scene, calibration, s.camera, rng) if with_camera else None
     gnss = GnssEmulator(zone, ORIGIN_UTM, calibration.T_base_gnss, s.gnss, rng)
     mcu = JackalMcuEmulator(
         calibration.wheels, s.wheels, rng, imu_rng=np.random.default_rng([s.seed, 3])
@@ -313,7 +314,10 @@ def simulate_survey(
     messages: list[tuple[int, str, bytes, int]] = []  # (log_time, topic, data, publish_time)
     host = round(s.host_clock_offset_s * 1e9)  # the host clock is UTC + this
     t_end = t0_ns + int(duration_s * 1e9)
-    for index, (t, payload) in enumerate(lidar.packets(pose_at, t0_ns, t_end)):
+    # A drive without the LiDAR (`lidar.enabled` false) records GNSS and wheels only: what
+    # a test of localisation needs, without the ray casting that is most of a drive's cost.
+    packets = lidar.packets(pose_at, t0_ns, t_end) if s.lidar.enabled else ()
+    for index, (t, payload) in enumerate(packets):
         # A packet leaves the sensor once its 12 blocks have fired.
         log_time = t + m.PACKET_NS_SINGLE + LATENCY_NS["lidar"] + host
         stamp = lidar_publish_time(payload, log_time)  # recording format v1

@@ -149,8 +149,12 @@ def test_a_turned_field_and_any_lever_arm_leave_no_offset(
         field_heading_deg=field_heading_deg,
         antenna=antenna,
         gnss=dataclasses.replace(GnssSettings(), dual_antenna=dual_antenna),
+        # The pose is the GNSS's and the wheels': a drive without LiDAR and camera.
+        lidar=dataclasses.replace(LidarSettings(), enabled=False),
+        camera_rate_hz=0.0,
     )
     survey = twin_survey(settings)
+    assert not survey.counts.get(rec.LIDAR_PACKETS) and not survey.counts.get(rec.CAMERA_JPEG)
     errors = fused_pose_errors(survey, settings)
     assert len(errors) >= 20
     # Measured: medians 2-3 cm, at most 5 cm, with and without a true heading (without
