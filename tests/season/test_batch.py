@@ -336,6 +336,8 @@ def test_no_scheduler_there_is_a_clear_error(tmp_path, capsys):
             str(tmp_path / "s.sqlite"),
             "--scheduler",
             f"tcp://127.0.0.1:{port}",
+            "--scheduler-timeout",
+            "2",
         ]
     )
     assert status == 2

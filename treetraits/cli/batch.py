@@ -59,6 +59,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--runs at the same paths",
     )
     batch.add_argument(
+        "--scheduler-timeout",
+        type=float,
+        default=20.0,
+        metavar="SECONDS",
+        help="how long to wait for --scheduler to answer before giving up (default 20)",
+    )
+    batch.add_argument(
         "--runs",
         type=Path,
         help="where the run directories go, one per recording (default: SEASON.runs/ "
@@ -100,6 +107,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
+    if not args.scheduler_timeout > 0:
+        wait = args.scheduler_timeout
+        raise ConfigError(f"--scheduler-timeout must be a positive number of seconds, got {wait}")
     gate = DEFAULT_LINK_GATE_M if args.link_gate is None else args.link_gate
     if not gate > 0:
         raise ConfigError(f"--link-gate must be a positive number of metres, got {gate}")
@@ -191,7 +201,7 @@ def _client(args: argparse.Namespace):
 
     if args.scheduler:
         try:
-            client = Client(args.scheduler, timeout="20s")
+            client = Client(args.scheduler, timeout=f"{args.scheduler_timeout}s")
         except (OSError, TimeoutError) as exc:
             raise SourceError(
                 f"--scheduler {args.scheduler}: cannot connect ({exc}); is `dask scheduler` "
