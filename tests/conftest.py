@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import os
+
 import cv2
 import pytest
 
 from tests.helpers.captures import VLP16_CAPTURES
 
 # The modules whose tests drive the twin end to end, the longest first (measured with
-# --durations). `make test` keeps a module on one worker (--dist loadfile) and hands the
-# modules out in this order, so that the workers end together on short modules instead of
-# one waiting for the other's last replay.
+# --durations). `make test TEST_WORKERS=auto` keeps a module on one worker (--dist
+# loadfile) and hands the modules out in this order, so that the workers end together on
+# short modules instead of one waiting for the other's last replay.
 LONGEST_FIRST = (
     "tests/service/test_replay.py",
     "tests/sim/test_run.py",
@@ -28,6 +30,8 @@ LONGEST_FIRST = (
 
 
 def pytest_collection_modifyitems(config, items) -> None:
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return  # one process: the order does not change how long it takes
     rank = {path: i for i, path in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.nodeid.split("::", 1)[0], len(rank)))
 
