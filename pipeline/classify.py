@@ -1,13 +1,14 @@
-"""What a tree is: each cluster of a scan judged tree / not a tree from its shape, its
-height above the terrain, its surface and its NDVI, against a crop profile.
+"""What a tree is: each cluster of a scan judged tree / not a tree from its shape and
+its height above the terrain against a crop profile, and from the evidence of
+vegetation on it (`pipeline.vegetation`: surface texture, planarity, NDVI).
 
-Every rule names a physical difference between a tree and what else stands in a grove
-(`ClassifyConfig` gives each bound and its reason): weeds, cover crop and drip lines are
-low; posts, wires, trunks alone and people are thin or slender; walls, sheds and
-vehicles are smooth where foliage is rough; buildings and long walls are wider than any
-crown. One scan can be
-misleading (a far tree's top is missed, a crown is seen edge-on), so the mapper keeps
-the verdicts of every scan of a track and decides by their majority (`Votes`).
+Every shape rule names a physical difference between a tree and what else stands in a
+grove (`ClassifyConfig` gives each bound and its reason): weeds, cover crop and drip
+lines are low; posts, wires, trunks alone and people are thin or slender; buildings and
+long walls are wider than any crown. Walls, sheds and vehicles of a crown's shape are
+told by their surface and colour, weighed together. One scan can be misleading (a far
+tree's top is missed, a crown is seen edge-on), so the mapper keeps the verdicts and the
+cues of every scan of a track and decides over all of them (`Votes`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 
 from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.config import ClassifyConfig
+from treetraits.pipeline.vegetation import Cues, Evidence, EvidenceSum
 
 TREE = "tree"
 # Reasons a cluster is not a tree, in the order the rules are tried.
@@ -29,7 +31,7 @@ THIN = "thin"  # a post, a trunk without its crown, a wire's end
 SLENDER = "slender"  # a standing or walking person, a pole
 WIDE = "wide"  # a long wall, a building, a parked row of vehicles
 FLOATING = "floating"  # a ceiling, a roof edge, a crown's fragment cut off its tree
-SMOOTH = "smooth"  # a wall, a shed, a vehicle, a person, a post: no foliage
+SMOOTH = "smooth"  # a wall, a shed, a vehicle: its surface is not foliage's
 NOT_GREEN = "not_green"  # the camera sees no vegetation on it
 REASONS = (LOW, TALL, FLOATING, THIN, SLENDER, WIDE, SMOOTH, NOT_GREEN)
 
@@ -321,8 +323,10 @@ def median(values: np.ndarray) -> float:
     return float(part[half]) if n % 2 else float((part[half - 1] + part[half]) / 2)
 
 
-def judge(shape: Shape, config: ClassifyConfig) -> str:
-    """TREE, or the first rule the shape fails (one of REASONS)."""
+def judge(shape: Shape, config: ClassifyConfig, evidence: Evidence | None = None) -> str:
+    """TREE, or the first rule the shape fails (one of REASONS); then, with `evidence`
+    (`pipeline.vegetation`), `not_green` or `smooth` where it speaks against
+    vegetation, by the cue that speaks most against it."""
     if shape.height_m < config.min_height_m:
         return LOW
     if shape.height_m > config.max_height_m:
@@ -335,20 +339,33 @@ def judge(shape: Shape, config: ClassifyConfig) -> str:
         return SLENDER
     if shape.width_m > config.max_width_m:
         return WIDE
-    if math.isfinite(shape.roughness) and shape.roughness < config.min_roughness_m:
-        return SMOOTH
-    seen = shape.ndvi_share >= config.min_ndvi_share and math.isfinite(shape.ndvi)
-    if seen and shape.ndvi < config.min_ndvi:
-        return NOT_GREEN
+    if evidence is not None and not evidence.vegetation:
+        return not_vegetation(evidence)
     return TREE
+
+
+def not_vegetation(evidence: Evidence) -> str:
+    """The reason an object the evidence speaks against is not a tree."""
+    return NOT_GREEN if evidence.against == "ndvi" else SMOOTH
+
+
+# Verdicts of a tree's shape that the vegetation evidence turned down: the track's
+# evidence, over all its scans, decides those (`Votes.kind`).
+EVIDENCE_REASONS = (SMOOTH, NOT_GREEN)
 
 
 @dataclass
 class Votes:
     """The verdicts of every cluster of one track (a scan may give a track several
-    pieces). A tree when its tree verdicts are at least `min_share` of the verdicts that
-    judge what the object is, and at least `min_share_all` of all of them; else the
-    reason given most often.
+    pieces) and their vegetation evidence.
+
+    Its shape is a tree's when its tree-shaped verdicts (`tree`, and `smooth` or
+    `not_green`, which are tree-shaped objects whose scan spoke against vegetation) are
+    at least `min_share` of the verdicts that judge what the object is and at least
+    `min_share_all` of all of them; else it is the reason given most often. A tree's
+    shape is a tree when the track's evidence (each cue's mean over the scans that
+    measured it, `vegetation.EvidenceSum`) is not against vegetation: one scan's
+    evidence, or one cue's, decides nothing alone.
 
     `low` and `floating` judge a piece, not the object: a crown cut by the crop box or
     hidden in part is a floating top or a low skirt in some scans, and on a path that
@@ -356,22 +373,30 @@ class Votes:
     grove). A weed or a post taken for a tree in a few scans stays far below the floor."""
 
     counts: Counter = field(default_factory=Counter)
+    evidence: EvidenceSum = field(default_factory=EvidenceSum)
 
-    def add(self, verdict: str) -> None:
+    def add(self, verdict: str, cues: Cues | None = None, evidence: Evidence | None = None) -> None:
         self.counts[verdict] += 1
+        if cues is not None and evidence is not None and verdict not in (LOW, FLOATING):
+            # A piece (a skirt, a crown's top) is not the object: its surface is not weighed.
+            self.evidence.add(cues, evidence)
 
     def absorb(self, other: Votes) -> None:
         self.counts.update(other.counts)
+        self.evidence.absorb(other.evidence)
 
     def kind(self, min_share: float, min_share_all: float) -> str:
         total = sum(self.counts.values())
         if total == 0:
             return TREE
-        trees = self.counts[TREE]
+        shaped = self.counts[TREE] + sum(self.counts[r] for r in EVIDENCE_REASONS)
         judging = total - self.counts[LOW] - self.counts[FLOATING]
-        if trees >= min_share * judging and trees >= min_share_all * total:
-            return TREE
-        reasons = [(n, r) for r, n in self.counts.items() if r != TREE]
+        if shaped >= min_share * judging and shaped >= min_share_all * total:
+            evidence = self.evidence.evidence()
+            return TREE if evidence.vegetation else not_vegetation(evidence)
+        reasons = [(n, r) for r, n in self.counts.items() if r not in (TREE, *EVIDENCE_REASONS)]
+        if not reasons:
+            reasons = [(n, r) for r, n in self.counts.items() if r != TREE]
         return max(reasons, key=lambda item: (item[0], -REASONS.index(item[1])))[1]
 
 

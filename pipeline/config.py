@@ -218,16 +218,52 @@ class ClassifyConfig:
     # Wider than this is not one tree: an old tree's crown is 4-5 m; a hedgerow's
     # touching crowns are split at their trunks before they are judged (`tracking`).
     max_width_m: float = 7.0
-    # Foliage is rough along a ring, everything else in a grove is smooth (see
-    # `classify.roughness`): walls, vehicles, posts and people measured 0.004-0.03 m on
-    # the real indoor captures (VLP-16 range noise), citrus foliage is leaves of 5-10 cm
-    # at depths decimetres apart (the twin's crowns: 0.10-0.13 m).
+    # A stem's column or a trunk's bark is smooth along a ring (`classify.roughness`,
+    # consecutive firings): clothes, wood, concrete and steel measured 0.004-0.03 m on
+    # the real indoor captures (the range noise). Used to tell posts, people and bark from
+    # foliage at trunk level (`pipeline.stems`, `detection.cluster_trunks`), not whether
+    # a crown is vegetation (real canopy measured 0.011-0.037 m: the cues below decide).
     min_roughness_m: float = 0.04
-    # With the camera on at least this share of its returns, a mean NDVI below this is
-    # not vegetation: bare soil reads 0.1-0.2, citrus foliage 0.5-0.8, wood, metal and
-    # concrete below 0.2.
+    # Vegetation evidence (`pipeline.vegetation`): each cue's pivot (where it says
+    # nothing), its scale (one unit of evidence) and its weight. The values on real
+    # returns are in docs/pipeline.md ("Vegetation evidence").
+    # Texture: off-midpoint distance of returns this far apart along a ring; leaves are
+    # 3-10 cm, so at 5 cm neighbours lie on different leaves.
+    texture_step_m: float = 0.05
+    # Real apple canopy 0.054-0.14 m at 1.5-9 m, real walls and furniture 0.004-0.033 m
+    # (one object 0.047 m): the geometric middle. One unit per doubling.
+    texture_pivot_m: float = 0.04
+    texture_weight: float = 1.0
+    # Planarity: patches of this size, flat within the VLP-16's range noise (1 sigma about
+    # 1 cm; +-3 cm accuracy).
+    planar_patch_m: float = 0.3
+    planar_noise_m: float = 0.02
+    # Real canopy 0-0.26 of its patches flat, real indoor objects 0.09-1.0 (walls 0.6-1.0).
+    planar_pivot: float = 0.4
+    planar_scale: float = 0.3
+    planar_weight: float = 0.5
+    # NDVI, where the camera saw at least `min_ndvi_share` of the returns: bare soil reads
+    # 0.1-0.2, wood, metal, paint and cloth below 0.3, citrus foliage 0.5-0.8. The most
+    # direct evidence of live leaves: twice a surface cue's weight.
     min_ndvi: float = 0.3
+    ndvi_scale: float = 0.15
+    ndvi_weight: float = 2.0
     min_ndvi_share: float = 0.3
+    # Intensity (the VLP-16's calibrated reflectivity, 0-100 % diffuse): leaves reflect
+    # 40-50 % at 905 nm, and real canopy's crowns measured a median of 12-26 (partial hits
+    # on leaf edges lower it); black plastic, tyres and dark cloth under 10 % (real indoor
+    # dark objects 3-11); but a far crown's sparse top, hit on leaf edges, measured 6-8:
+    # it weighs nothing by default (recorded; `calibrate classify` may weigh it where an
+    # orchard shows a margin).
+    intensity_pivot: float = 10.0
+    intensity_scale: float = 10.0
+    intensity_weight: float = 0.0
+    # A weak echo's range is noisy, and noise looks like leaves to the surface cues: their
+    # evidence for foliage counts nothing at this median intensity or below and in full
+    # from `clear_intensity` (real dark objects, 3-11: texture 0.02-0.09 m; real walls,
+    # 34-71: 0.005-0.01 m; real canopy's crowns 12-26).
+    dark_intensity: float = 8.0
+    clear_intensity: float = 15.0
     # A track is a tree when at least this share of its verdicts that judge the object
     # (all but `low` and `floating`, which a piece of a crown gets) say tree, and this
     # share of all of them (see `classify.Votes`).

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import NamedTuple
 
@@ -36,6 +36,7 @@ from treetraits.pipeline.config import (
 from treetraits.pipeline.stems import StemSearch, stem_of_voxels
 from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
 from treetraits.pipeline.understorey import join_understorey
+from treetraits.pipeline.vegetation import Cues, Evidence, measure_groups, weigh
 from treetraits.pipeline.visibility import BeamsAbove
 
 # Voxel keys: 21 bits per axis (+-1M cells: +-100 km at 0.1 m), packed into one int64.
@@ -96,6 +97,9 @@ class Cluster:
     # (3,) base frame: the axis of the one trunk seen under its crown in this scan
     # (`cluster_trunks`); None when none or more than one was seen.
     trunk: np.ndarray | None = None
+    # What its surface and colour show (`pipeline.vegetation`) and what that weighs.
+    cues: Cues = field(default_factory=Cues)
+    evidence: Evidence = field(default_factory=Evidence)
 
     @property
     def features(self) -> np.ndarray:
@@ -424,10 +428,11 @@ def detect(
         ring,
         ndvi,
         ground,
-        lidar_xy,
+        T_base_lidar[:3, 3],
         config.classify,
         top_seen,
         trunks,
+        points[["azimuth", "intensity", "return_type"]][source],
     )
     counts["clustered_voxels"] = sum(c.num_points for c in clusters)
     clock.lap("features")
@@ -676,11 +681,15 @@ def _features(
     ring,
     ndvi,
     ground,
-    lidar_xy,
+    lidar_xyz,
     classify: ClassifyConfig,
     top_seen: Callable[[np.ndarray], bool],
     trunks: dict[int, np.ndarray],
+    firing: np.ndarray,
 ) -> list[Cluster]:
+    """Each kept cluster's shape, cues and verdict. `firing`: each return's sensor
+    azimuth, intensity and return type (`vegetation.measure_groups`)."""
+    lidar_xy = lidar_xyz[:2]
     point_label = labels[voxel_of]
     order = stable_order(point_label)
     bounds = np.searchsorted(point_label[order], np.stack([kept, kept + 1]))
@@ -693,6 +702,14 @@ def _features(
     all_points, all_rings = xyz[every], ring[every]
     sizes = bounds[1] - bounds[0]
     rough = roughness_of_groups(all_points, all_rings, lidar_xy, sizes)
+    surface = measure_groups(
+        all_points,
+        all_rings,
+        firing[every],
+        lidar_xyz,
+        sizes,
+        classify,
+    )
     ends = np.cumsum(sizes)
     cells_of = [
         voxels[voxel_order[voxel_bounds[0, k] : voxel_bounds[1, k]]] for k in range(len(kept))
@@ -708,6 +725,8 @@ def _features(
         points = all_points[ends[k] - sizes[k] : ends[k]]
         rings = all_rings[ends[k] - sizes[k] : ends[k]]
         shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]))
+        cues = replace(surface[k], ndvi=shape.ndvi, ndvi_share=shape.ndvi_share)
+        evidence = weigh(cues, classify)
         clusters.append(
             Cluster(
                 centroid=centroid,
@@ -718,7 +737,9 @@ def _features(
                 ring=rings,
                 ground_z=ground_z,
                 shape=shape,
-                verdict=judge(shape, classify),
+                verdict=judge(shape, classify, evidence),
+                cues=cues,
+                evidence=evidence,
                 top_seen=top_seen(members),
                 trunk=trunks.get(int(kept[k])),
             )

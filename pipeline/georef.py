@@ -160,8 +160,18 @@ def georeference(
                 status=FOUND if kind == TREE else REJECTED,
                 reason=None if kind == TREE else kind,
                 height_top_seen=getattr(tree, "height_top_seen", None),
+                **({} if kind == TREE else _cues(tree)),
             )
         )
+    return out
+
+
+def _cues(tree: MappedTree) -> dict[str, float | None]:
+    """A rejected object's cues (`pipeline.vegetation`), None where unmeasured."""
+    out = {}
+    for name in ("evidence", "texture_m", "planar_share", "intensity"):
+        value = getattr(tree, name, None)
+        out[name] = None if value is None or not math.isfinite(value) else float(value)
     return out
 
 

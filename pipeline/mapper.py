@@ -9,6 +9,7 @@ if one is given, else standing still).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -87,6 +88,12 @@ class TrackedTree:
     # Some scan's beam passed over its top (`pipeline.visibility`); else its height is a
     # lower bound: the crown went on above the LiDAR's top beam in every scan.
     height_top_seen: bool = False
+    # Its cues over its scans (`vegetation.EvidenceSum`): each one's mean (NaN: never
+    # measured) and the evidence they weigh (None: no cue measured).
+    evidence: float | None = None
+    texture_m: float = math.nan
+    planar_share: float = math.nan
+    intensity: float = math.nan
 
 
 _MAX_TRUNK_SIGHTINGS = 512
@@ -242,7 +249,7 @@ class TreeMapper:
             if decision.outcome == "duplicate":
                 continue
             tree = self._changing(decision.tree_id)
-            tree.votes.add(cluster.verdict)
+            tree.votes.add(cluster.verdict, cluster.cues, cluster.evidence)
             if cluster.verdict == LOW:
                 # The understorey (weeds, a drip line's span, a skirt alone) adds nothing
                 # to a tree: lower than any tree, it can give it no height, only a
@@ -340,6 +347,8 @@ class TreeMapper:
         if centre is not None:  # traits frame -> the mapper's frame
             x, y = back[:2, :2] @ centre + back[:2, 3]
         ndvi = tree.ndvi_sum / tree.ndvi_count if tree.ndvi_count else None
+        cues = tree.votes.evidence
+        evidence = cues.evidence()
         return TrackedTree(
             tree_id=track.tree_id,
             x=float(x),
@@ -355,6 +364,10 @@ class TreeMapper:
             traits=tree.traits.method,
             kind=self._kind(tree),
             height_top_seen=tree.top_seen,
+            evidence=evidence.total if evidence.measured else None,
+            texture_m=cues.mean("texture"),
+            planar_share=cues.mean("planar"),
+            intensity=cues.mean("intensity"),
         )
 
     def _moved(self, tree: TrackedTree, traits_from_map: np.ndarray, back: np.ndarray):

@@ -102,6 +102,7 @@ FLAG = Format(csv=_flag, json=_same, sql_type="INTEGER", to_sql=_bit, from_sql=_
 METRES = decimals(3)  # a millimetre
 DEGREES = decimals(8)  # WGS84, ~1 mm
 INDEX = decimals(4)  # NDVI
+SCORE = decimals(3)  # vegetation evidence, shares
 
 
 # ---- the table -------------------------------------------------------------------------
@@ -302,6 +303,49 @@ class Tree:
         'not judged (a missing tree; docs/pipeline.md, "Heights the LiDAR cannot see")',
         default=None,
         sql_note="1, 0 (the height is a lower bound), NULL (not judged)",
+    )
+    # A rejected object's cues (`pipeline.vegetation`), each its mean over the track's
+    # scans: how close it came to being a tree. rejected.geojson and the store only.
+    evidence: float | None = column(
+        17,
+        SCORE,
+        "a rejected object's vegetation evidence, the sum of its cues' weighted "
+        "contributions (negative: against vegetation; docs/pipeline.md); empty when no "
+        "cue was measured",
+        default=None,
+        csv=False,
+        geojson_optional=True,
+        sql=None,
+    )
+    texture_m: float | None = column(
+        18,
+        METRES,
+        "a rejected object's surface texture (m): off-midpoint distance of returns 5 cm "
+        "apart along a ring, mean over its scans; empty when unmeasured",
+        default=None,
+        csv=False,
+        geojson_optional=True,
+        sql=None,
+    )
+    planar_share: float | None = column(
+        19,
+        SCORE,
+        "a rejected object's share of 0.3 m patches flat within the range noise, mean over "
+        "its scans; empty when unmeasured",
+        default=None,
+        csv=False,
+        geojson_optional=True,
+        sql=None,
+    )
+    intensity: float | None = column(
+        20,
+        SCORE,
+        "a rejected object's median LiDAR intensity (0-255), mean over its scans; empty "
+        "when unmeasured",
+        default=None,
+        csv=False,
+        geojson_optional=True,
+        sql=None,
     )
 
 

@@ -47,7 +47,13 @@ REJECTED_COLUMNS = (
     "observations",
     "first_seen",
     "last_seen",
+    "evidence",
+    "texture_m",
+    "planar_share",
+    "intensity",
 )
+# The cues appended to `rejected` (a store written before them gets them, NULL).
+_REJECTED_APPENDED = ("evidence", "texture_m", "planar_share", "intensity")
 
 
 def trees_table_sql(fields: Sequence[TreeField] = SQL_FIELDS) -> str:
@@ -77,7 +83,8 @@ CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT NOT NULL);
     tree_id TEXT PRIMARY KEY, reason TEXT NOT NULL,
     easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
     width_m REAL, height_m REAL, ndvi REAL,
-    observations INTEGER NOT NULL, first_seen INTEGER NOT NULL, last_seen INTEGER NOT NULL
+    observations INTEGER NOT NULL, first_seen INTEGER NOT NULL, last_seen INTEGER NOT NULL,
+    evidence REAL, texture_m REAL, planar_share REAL, intensity REAL  -- its vegetation cues
 );
 CREATE TABLE IF NOT EXISTS observations (
     scan_t INTEGER NOT NULL, tree_id TEXT NOT NULL,
@@ -122,6 +129,10 @@ class TraitStore:
         for f in SQL_FIELDS:
             if f.name not in have:
                 self._db.execute(f"ALTER TABLE trees ADD COLUMN {f.name} {f.sql_definition}")
+        have = {row[1] for row in self._db.execute("PRAGMA table_info(rejected)")}
+        for name in _REJECTED_APPENDED:
+            if name not in have:
+                self._db.execute(f"ALTER TABLE rejected ADD COLUMN {name} REAL")
 
     def set_run_facts(self, facts: dict) -> None:
         self._db.execute("BEGIN")
