@@ -326,7 +326,9 @@ def median(values: np.ndarray) -> float:
 def judge(shape: Shape, config: ClassifyConfig, evidence: Evidence | None = None) -> str:
     """TREE, or the first rule the shape fails (one of REASONS); then, with `evidence`
     (`pipeline.vegetation`), `not_green` or `smooth` where it speaks against
-    vegetation, by the cue that speaks most against it."""
+    vegetation, by the cue that speaks most against it. Undecided evidence (nothing
+    measured, or for and against in balance) leaves a scan's verdict to the shape: the
+    track decides over all its scans (`Votes`)."""
     if shape.height_m < config.min_height_m:
         return LOW
     if shape.height_m > config.max_height_m:
@@ -339,7 +341,7 @@ def judge(shape: Shape, config: ClassifyConfig, evidence: Evidence | None = None
         return SLENDER
     if shape.width_m > config.max_width_m:
         return WIDE
-    if evidence is not None and not evidence.vegetation:
+    if evidence is not None and evidence.disproved:
         return not_vegetation(evidence)
     return TREE
 

@@ -42,8 +42,11 @@ from treetraits.pipeline.config import ClassifyConfig
 
 # Triples for the texture: at least this many on a cluster, or it is not measured.
 _MIN_TRIPLES = 5
-# A patch for the planarity: at least this many returns on at least two rings.
-_MIN_PATCH_RETURNS = 8
+# A patch for the planarity: at least this many returns on each of two rings or more.
+# One ring's returns lie in its own fan of beams, which a plane fits whatever they hit:
+# a patch is tested only where two rings cross it (real canopy at 5 m: a ring and one
+# or two returns of the next made 70 % of its patches "flat").
+_MIN_RING_RETURNS = 3
 # Patches spread over less than this (second axis, RMS m) are a line (one ring, an
 # edge), which any plane fits: left out.
 _MIN_PATCH_SPREAD_M = 0.04
@@ -89,6 +92,11 @@ class Evidence:
         """The cues, weighed together, speak for vegetation: an object nothing could be
         measured on (too few returns, dark echoes) is not shown to be one."""
         return self.total > 0.0
+
+    @property
+    def disproved(self) -> bool:
+        """The cues, weighed together, speak against vegetation (0: undecided)."""
+        return self.total < 0.0
 
     @property
     def against(self) -> str:
@@ -312,10 +320,11 @@ def texture_of_groups(
 def planar_share_of_groups(
     points: np.ndarray, ring: np.ndarray, sizes: np.ndarray, patch_m: float, noise_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`Cues.planar_share` of each group and the patches it is a share of: its returns binned in
-    cubes of `patch_m`; of the cubes with at least `_MIN_PATCH_RETURNS` returns on two rings or
-    more, spread over a surface (not a line), the share whose returns' RMS distance from their
-    best-fit plane is under `noise_m`. NaN for fewer than `_MIN_PATCHES` such cubes."""
+    """`Cues.planar_share` of each group and the patches it is a share of: its returns
+    binned in cubes of `patch_m`; of the cubes with at least `_MIN_RING_RETURNS` returns
+    on each of two rings or more, spread over a surface (not a line), the share whose
+    returns' RMS distance from their best-fit plane is under `noise_m`. NaN for fewer
+    than `_MIN_PATCHES` such cubes."""
     groups = len(sizes)
     out, patches = np.full(groups, math.nan), np.zeros(groups, dtype=np.int64)
     if len(points) == 0:
@@ -327,9 +336,9 @@ def planar_share_of_groups(
     key = ((owner * span[0] + cells[:, 0]) * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
     keys, cell_of, count = np.unique(key, return_inverse=True, return_counts=True)
     cell_of = cell_of.ravel()
-    # Rings per cell: distinct (cell, ring) pairs.
-    pairs = np.unique(cell_of * 256 + ring.astype(np.int64))
-    rings = np.bincount(pairs // 256, minlength=len(keys))
+    # Rings per cell with enough returns on them: (cell, ring) pairs counted.
+    pairs, on_ring = np.unique(cell_of * 256 + ring.astype(np.int64), return_counts=True)
+    rings = np.bincount(pairs[on_ring >= _MIN_RING_RETURNS] // 256, minlength=len(keys))
     centre = (
         np.stack(
             [
@@ -347,7 +356,7 @@ def planar_share_of_groups(
             cov[:, i, j] = cov[:, j, i] = (
                 np.bincount(cell_of, weights=d[:, i] * d[:, j], minlength=len(keys)) / count
             )
-    usable = (count >= _MIN_PATCH_RETURNS) & (rings >= 2)
+    usable = rings >= 2
     if not usable.any():
         return out, patches
     eigen = np.linalg.eigvalsh(cov[usable])  # ascending

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -31,6 +32,7 @@ from treetraits.pipeline.classify import (
 )
 from treetraits.pipeline.config import ClassifyConfig, ClusterConfig, DetectionConfig
 from treetraits.pipeline.detection import detect
+from treetraits.pipeline.vegetation import Cues, weigh
 from treetraits.sim.clutter import box, cylinder, person, tube, vehicle, weed_clump
 from treetraits.sim.orchard import Ground, TreeSpec, tree_mesh
 
@@ -89,23 +91,39 @@ def shape(**values) -> Shape:
     return Shape(**{**base, **values})
 
 
+# Cues as a crown, a wall and a dark object show them (docs/pipeline.md's cue table).
+CROWN = Cues(texture_m=0.08, texture_triples=200, planar_share=0.1, planar_patches=20, intensity=20)
+WALL = Cues(texture_m=0.008, texture_triples=200, planar_share=0.9, planar_patches=20, intensity=45)
+
+
 @pytest.mark.parametrize(
-    ("values", "verdict"),
+    ("values", "cues", "verdict"),
     [
-        ({}, TREE),
-        ({"height_m": 0.5}, LOW),  # cover crop
-        ({"base_m": 2.6}, FLOATING),  # a ceiling, a crown fragment
-        ({"width_m": 0.3, "height_m": 1.8}, THIN),  # a post, a person side on
-        ({"width_m": 0.65, "height_m": 1.75}, SLENDER),  # a person facing the robot
-        ({"width_m": 12.0}, WIDE),  # a building
-        ({"roughness": 0.01}, SMOOTH),  # a wall, a vehicle
-        ({"ndvi": 0.1, "ndvi_share": 0.8}, NOT_GREEN),  # the camera sees no leaves
-        ({"ndvi": 0.1, "ndvi_share": 0.1}, TREE),  # too little of it seen to say
-        ({"roughness": math.nan}, TREE),  # too few returns to say
+        ({}, CROWN, TREE),
+        ({"height_m": 0.5}, CROWN, LOW),  # cover crop
+        ({"base_m": 2.6}, CROWN, FLOATING),  # a ceiling, a crown fragment
+        ({"width_m": 0.3, "height_m": 1.8}, CROWN, THIN),  # a post, a person side on
+        ({"width_m": 0.65, "height_m": 1.75}, CROWN, SLENDER),  # a person facing the robot
+        ({"width_m": 12.0}, WALL, WIDE),  # a building
+        ({}, WALL, SMOOTH),  # a wall, a vehicle
+        # Rough, but the camera sees no leaves on it: the colour outweighs the surface.
+        ({}, replace(CROWN, ndvi=0.1, ndvi_share=0.8), NOT_GREEN),
+        ({}, replace(CROWN, ndvi=0.1, ndvi_share=0.1), TREE),  # too little of it seen to say
+        # A pruned hedge smoother than the texture's pivot, plainly green: a tree.
+        ({}, replace(CROWN, texture_m=0.025, ndvi=0.75, ndvi_share=0.6), TREE),
+        # Nothing measured, or a dark object's noisy echoes (no credit for looking rough):
+        # undecided in one scan, the shape's verdict stands; the track decides.
+        ({}, Cues(), TREE),
+        ({}, replace(CROWN, intensity=5), TREE),
     ],
 )
-def test_each_rule(values, verdict):
-    assert judge(shape(**values), CONFIG) == verdict
+def test_each_rule(values, cues, verdict):
+    assert judge(shape(**values), CONFIG, weigh(cues, CONFIG)) == verdict
+
+
+def test_the_shape_rules_alone_without_evidence():
+    assert judge(shape(), CONFIG) == TREE
+    assert judge(shape(height_m=0.5), CONFIG) == LOW
 
 
 def test_roughness_of_a_smooth_wall_and_of_foliage():
@@ -150,25 +168,43 @@ def test_roughness_of_groups_is_each_ones_to_the_bit():
     assert np.array_equal(found[known].view(np.int64), each[known].view(np.int64))
 
 
-def test_a_track_is_what_most_of_its_verdicts_say():
-    def votes(**counts) -> Votes:
+def test_a_track_is_what_its_verdicts_and_its_evidence_over_all_its_scans_say():
+    def votes(cues: Cues = CROWN, **counts) -> Votes:
         out = Votes()
         for verdict, n in counts.items():
             for _ in range(n):
-                out.add(verdict)
+                out.add(verdict, cues, weigh(cues, CONFIG))
         return out
 
-    assert votes(tree=6, low=3, smooth=1).kind(0.5, 0.25) == TREE
+    assert votes(tree=6, low=3).kind(0.5, 0.25) == TREE
     # A crown seen in pieces: its floating tops and low skirts do not count against it.
-    assert votes(tree=40, floating=30, low=20, smooth=5).kind(0.5, 0.25) == TREE
+    assert votes(tree=40, floating=30, low=20).kind(0.5, 0.25) == TREE
     # A weed clump judged a tree in a few scans is still a weed.
     assert votes(tree=3, low=100).kind(0.5, 0.25) == LOW
-    # A wall that looks rough in some scans: its smooth verdicts win.
-    assert votes(tree=10, smooth=30, low=5).kind(0.5, 0.25) == SMOOTH
-    mixed = votes(tree=6, low=3, smooth=1)
-    mixed.absorb(votes(smooth=8, low=8))
+    # A wall that looks rough in some scans: its evidence over all of them is a wall's.
+    wall = votes(WALL, smooth=30, low=5)
+    wall.absorb(votes(replace(WALL, texture_m=0.05), tree=10))
+    assert wall.kind(0.5, 0.25) == SMOOTH
+    # A smooth, pruned crown the camera saw green in 3 scans of 40: the NDVI's mean over
+    # the scans that saw it counts in full, not diluted by those that did not.
+    hedge = votes(replace(CROWN, texture_m=0.025), smooth=37)
+    hedge.absorb(votes(replace(CROWN, texture_m=0.025, ndvi=0.75, ndvi_share=0.6), tree=3))
+    assert hedge.kind(0.5, 0.25) == TREE
+    # The same crown never seen by the camera: its surface alone speaks against it.
+    assert (
+        votes(replace(CROWN, texture_m=0.02, planar_share=0.5), smooth=40).kind(0.5, 0.25) == SMOOTH
+    )
+    # A person the camera saw in a few scans, rough-looking clothes: not green.
+    person = votes(replace(CROWN, ndvi=0.12, ndvi_share=0.7), not_green=4)
+    person.absorb(votes(tree=6))
+    assert person.kind(0.5, 0.25) == NOT_GREEN
+    mixed = votes(tree=2, low=3)
+    mixed.absorb(votes(low=5, thin=8))
     assert mixed.kind(0.5, 0.25) == LOW  # ties: the rule tried first
     assert Votes().kind(0.5, 0.25) == TREE
+    # A dark object: the surface cues earn it nothing in any scan, and nothing shows it
+    # is vegetation: not a tree.
+    assert votes(replace(CROWN, intensity=5), tree=20).kind(0.5, 0.25) == SMOOTH
 
 
 @pytest.mark.parametrize(

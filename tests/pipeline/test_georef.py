@@ -544,11 +544,15 @@ def test_every_field_of_tree_is_a_column_of_the_table():
 
 def test_geojson_properties_follow_the_table():
     found, _, _ = output_trees()
-    rejected = dataclasses.replace(found, status="rejected", reason="post")
+    cues = {"evidence": -0.8, "texture_m": 0.012, "planar_share": 0.7, "intensity": 41.0}
+    rejected = dataclasses.replace(found, status="rejected", reason="post", **cues)
     keys = [f.geojson for f in GEOJSON_FIELDS]
-    assert list(_feature(found)["properties"]) == keys[:-1]  # no reason: not set
+    # A found tree has no reason and no cues (not set): rejected.geojson's alone.
+    optional = ["reason", *cues]
+    assert list(_feature(found)["properties"]) == [k for k in keys if k not in optional]
     assert list(_feature(rejected)["properties"]) == keys
     assert _feature(rejected)["properties"]["reason"] == "post"
+    assert {k: _feature(rejected)["properties"][k] for k in cues} == cues
     # The same values as trees.csv, as JSON: the cells of the columns both hold.
     cells = dict(zip(CSV_COLUMNS, csv_row(found), strict=True))
     properties = _feature(found)["properties"]

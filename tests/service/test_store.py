@@ -169,7 +169,8 @@ def test_trees_read_back_as_they_were_written(tmp_path):
         "", 1.0, 2.0, "11N", 33.9, -117.3, math.nan, math.nan, None, 0, None, None, "F2", "r1",
         "missing",
     )  # fmt: skip
-    rejected = dataclasses.replace(tree(3), status="rejected", reason="post")
+    cues = {"evidence": -0.75, "texture_m": 0.011, "planar_share": None, "intensity": 40.5}
+    rejected = dataclasses.replace(tree(3), status="rejected", reason="post", **cues)
     with TraitStore(tmp_path / "traits.sqlite") as store:
         store.commit_scan([], [found])
         store.replace_unmatched([missing], [rejected])
@@ -181,7 +182,7 @@ def test_trees_read_back_as_they_were_written(tmp_path):
     # NaN is not equal to itself).
     assert repr(back[1]) == repr(dataclasses.replace(missing, tree_id="missing:F2"))
     assert stored == [("T3", "post", 467003.0, 3758000.0, "11N", 33.96, -117.35, 2.7, 2.6,
-                       0.75, 1, 1000, 2001)]  # fmt: skip
+                       0.75, 1, 1000, 2001, -0.75, 0.011, None, 40.5)]  # fmt: skip
     assert top_seen == [(0,), (None,)]  # a flag as 0 / 1, unjudged NULL
 
 
@@ -202,4 +203,31 @@ def test_a_store_from_before_a_column_gets_it(tmp_path):
         assert [(t.tree_id, t.height_top_seen) for t in store.trees()] == [
             ("T0", None),
             ("T1", None),
+        ]
+
+
+def test_a_rejected_table_from_before_the_cues_gets_them(tmp_path):
+    """A store whose `rejected` table predates the vegetation cues: opened, it gains
+    them (NULL for the objects already there) and takes new objects with their cues."""
+    path = tmp_path / "traits.sqlite"
+    old = sqlite3.connect(path)
+    old.execute(
+        "CREATE TABLE rejected (tree_id TEXT PRIMARY KEY, reason TEXT NOT NULL, easting REAL, "
+        "northing REAL, utm_zone TEXT, lat REAL, lon REAL, width_m REAL, height_m REAL, "
+        "ndvi REAL, observations INTEGER NOT NULL, first_seen INTEGER NOT NULL, "
+        "last_seen INTEGER NOT NULL)"
+    )
+    old.execute(
+        "INSERT INTO rejected VALUES ('T9', 'smooth', 1, 2, '11N', 3, 4, 1, 2, 0.1, 5, 6, 7)"
+    )
+    old.commit()
+    old.close()
+    with TraitStore(path) as store:
+        columns = [row[1] for row in store._db.execute("PRAGMA table_info(rejected)")]
+        assert columns[-4:] == ["evidence", "texture_m", "planar_share", "intensity"]
+        assert store._db.execute("SELECT evidence FROM rejected").fetchall() == [(None,)]
+        rejected = dataclasses.replace(tree(3), status="rejected", reason="smooth", evidence=-1.0)
+        store.replace_unmatched([], [rejected])
+        assert store._db.execute("SELECT tree_id, evidence FROM rejected").fetchall() == [
+            ("T3", -1.0)
         ]
