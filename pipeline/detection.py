@@ -433,6 +433,7 @@ def detect(
         top_seen,
         trunks,
         points[["azimuth", "intensity", "return_type"]][source],
+        height >= config.cluster.bridge_min_height_m,
     )
     counts["clustered_voxels"] = sum(c.num_points for c in clusters)
     clock.lap("features")
@@ -686,9 +687,13 @@ def _features(
     top_seen: Callable[[np.ndarray], bool],
     trunks: dict[int, np.ndarray],
     firing: np.ndarray,
+    crown_part: np.ndarray,
 ) -> list[Cluster]:
     """Each kept cluster's shape, cues and verdict. `firing`: each return's sensor
-    azimuth, intensity and return type (`vegetation.measure_groups`)."""
+    azimuth, intensity and return type (`vegetation.measure_groups`). `crown_part`: the
+    returns above the understorey, on which the cues are measured: weeds at a post's
+    foot are vegetation, and a post standing in them is no crown (a tree's foliage is
+    its crown's, above where the understorey ends)."""
     lidar_xy = lidar_xyz[:2]
     point_label = labels[voxel_of]
     order = stable_order(point_label)
@@ -702,12 +707,14 @@ def _features(
     all_points, all_rings = xyz[every], ring[every]
     sizes = bounds[1] - bounds[0]
     rough = roughness_of_groups(all_points, all_rings, lidar_xy, sizes)
+    upper = crown_part[every]
+    owner = np.repeat(np.arange(len(kept)), sizes)
     surface = measure_groups(
-        all_points,
-        all_rings,
-        firing[every],
+        all_points[upper],
+        all_rings[upper],
+        firing[every][upper],
         lidar_xyz,
-        sizes,
+        np.bincount(owner[upper], minlength=len(kept)),
         classify,
     )
     ends = np.cumsum(sizes)
@@ -725,7 +732,9 @@ def _features(
         points = all_points[ends[k] - sizes[k] : ends[k]]
         rings = all_rings[ends[k] - sizes[k] : ends[k]]
         shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]))
-        cues = replace(surface[k], ndvi=shape.ndvi, ndvi_share=shape.ndvi_share)
+        mine = upper[ends[k] - sizes[k] : ends[k]]
+        crown_ndvi, crown_seen = _ndvi_of(None if values is None else values[mine])
+        cues = replace(surface[k], ndvi=crown_ndvi, ndvi_share=crown_seen)
         evidence = weigh(cues, classify)
         clusters.append(
             Cluster(
@@ -745,6 +754,15 @@ def _features(
             )
         )
     return clusters
+
+
+def _ndvi_of(values: np.ndarray | None) -> tuple[float, float]:
+    """The mean NDVI of the returns that have one (NaN: none) and their share."""
+    if values is None or len(values) == 0:
+        return math.nan, 0.0
+    known = np.isfinite(values)
+    seen = int(np.count_nonzero(known))
+    return (float(values[known].mean()) if seen else math.nan), seen / len(values)
 
 
 class StageClock:
