@@ -115,11 +115,22 @@ def _scale_bar(image: np.ndarray, view: _View) -> None:
 
 
 def draw_scan(
-    all_xyz: np.ndarray, detection: Detection, T_base_lidar: np.ndarray, title: str
+    all_xyz: np.ndarray,
+    detection: Detection,
+    T_base_lidar: np.ndarray,
+    title: str,
+    box: tuple[tuple[float, float], ...] | None = None,
 ) -> np.ndarray:
     """The picture, HEIGHT x WIDTH x 3 uint8 (BGR). `all_xyz`: every return of the scan in
-    `base` (N x 3)."""
+    `base` (N x 3); `box`: (x, y, z) ranges in metres, the returns drawn (the detection's
+    crop box: the far ground rings would shrink the objects to dots)."""
     import cv2
+
+    if box is not None:
+        inside = np.ones(len(all_xyz), dtype=bool)
+        for axis, (lo, hi) in enumerate(box):
+            inside &= (all_xyz[:, axis] >= lo) & (all_xyz[:, axis] <= hi)
+        all_xyz = all_xyz[inside]
 
     image = np.full((HEIGHT, WIDTH, 3), BACKGROUND, dtype=np.uint8)
     panel_w, panel_h = WIDTH // 2, HEIGHT - LEGEND_H

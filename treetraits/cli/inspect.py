@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         "scan": picked.number,
         "t_s": round(picked.t_s, 3),
         "points": len(points),
-        "calibration": calibration.source or "default",
+        "calibration": _calibration_source(args.calibration, calibration.source),
         "ndvi": "none",
         "summary": summary,
         "objects": rows,
@@ -140,7 +140,9 @@ def run(args: argparse.Namespace) -> int:
         from treetraits.scan_picture import draw_scan, write_png
 
         title = f"{path.name} scan {picked.number} (t {picked.t_s:.2f} s)"
-        image = draw_scan(to_base(points, T_base_lidar), detection, T_base_lidar, title)
+        crop = config.detection.crop
+        box = (crop.x_m, crop.y_m, crop.z_m)
+        image = draw_scan(to_base(points, T_base_lidar), detection, T_base_lidar, title, box)
         write_png(args.png, image)
         facts["png"] = str(args.png)
     if args.json:
@@ -155,3 +157,15 @@ def run(args: argparse.Namespace) -> int:
     if args.png is not None:
         print(f"picture: {args.png}")
     return 0
+
+
+def _calibration_source(given: Path | None, source: str) -> str:
+    """Where T_base_lidar came from: the file given, the config's, the recording's or the
+    default mount."""
+    if given is not None:
+        return str(given)
+    if source == "defaults":
+        return "default (a level LiDAR 0.44 m up)"
+    if source == "calibration":  # loaded from the recording's metadata
+        return "the recording's"
+    return source
