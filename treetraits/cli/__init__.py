@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
         export,
         fuse,
         imports,
+        inspect,
         lidar,
         nmea,
         play,
@@ -63,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     fuse.register(commands)
     sim.register(commands)
     replay.register(commands)
+    inspect.register(commands)
     imports.register(commands)
     export.register(commands)
     run.register(commands)
