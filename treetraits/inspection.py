@@ -15,11 +15,26 @@ from treetraits.errors import ConfigError
 
 if TYPE_CHECKING:
     from treetraits.drivers.records import Scan
-    from treetraits.pipeline.detection import Cluster, Detection
+    from treetraits.pipeline.detection import Cluster
 
-# An object whose returns span more than this vertically (top minus lowest return) is
-# "tall" in the summary: a tree's crown cross-section, a wall, a person.
+# An object whose returns span more than this vertically (top minus lowest return), of
+# at least TALL_RETURNS returns, is "tall" in the summary: a tree's crown cross-section,
+# a wall, a person. Fewer returns give the texture too few triples to weigh in full (a
+# far crown's sparse top of 20 dark returns shows nothing either way).
 TALL_EXTENT_M = 1.0
+TALL_RETURNS = 50
+# A tree's shape with no evidence either way in this scan (`Evidence.total` 0: nothing
+# measured, or dark echoes): its track decides over its scans.
+UNDECIDED = "undecided"
+
+
+def shown_verdict(cluster: Cluster) -> str:
+    """The verdict an operator reads: `undecided` where the shape is a tree's but this
+    scan shows no evidence of vegetation (the mapper keeps it as a tree's piece and the
+    track decides), else the cluster's own."""
+    if cluster.verdict == "tree" and not cluster.evidence.vegetation:
+        return UNDECIDED
+    return cluster.verdict
 
 
 @dataclass(frozen=True)
@@ -98,7 +113,7 @@ def object_row(index: int, cluster: Cluster, lidar_xyz: np.ndarray) -> dict[str,
         "width_m": _num(shape.width_m, 2),
         "aspect": _num(shape.aspect, 2),
         "roughness_m": _num(shape.roughness, 4),
-        "verdict": cluster.verdict,
+        "verdict": shown_verdict(cluster),
         "vegetation": bool(ev.vegetation),
         "evidence": _num(ev.total),
         "measured": list(ev.measured),
@@ -116,25 +131,80 @@ def object_row(index: int, cluster: Cluster, lidar_xyz: np.ndarray) -> dict[str,
     }
 
 
-def object_rows(detection: Detection, T_base_lidar: np.ndarray) -> list[dict[str, Any]]:
+def object_rows(
+    clusters: list[Cluster], T_base_lidar: np.ndarray, tracks: list[Track] | None = None
+) -> list[dict[str, Any]]:
+    """Each cluster's row; with `tracks` (one per cluster, `track_verdicts`), the track
+    it went to and what its scans so far make of it."""
     lidar = np.asarray(T_base_lidar, dtype=float)[:3, 3]
-    return [object_row(i, c, lidar) for i, c in enumerate(detection.clusters)]
+    rows = [object_row(i, c, lidar) for i, c in enumerate(clusters)]
+    for row, track in zip(rows, tracks or [], strict=False):
+        row["track"] = track.tree_id
+        row["track_scans"] = track.scans
+        row["track_verdict"] = track.kind
+    return rows
+
+
+@dataclass(frozen=True)
+class Track:
+    """The track a cluster went to and its verdict over its scans so far."""
+
+    tree_id: int
+    scans: int  # the scans it was seen in
+    kind: str  # "tree" or the reason it is not one (`pipeline.classify.REASONS`)
+
+
+# A track seen in fewer scans than the output's `min_observations`: not in the map (yet).
+UNCONFIRMED = "unconfirmed"
+
+
+def track_verdicts(
+    scans: Iterable[Scan], number: int, mapper, min_observations: int
+) -> tuple[list[Cluster], list[Track]]:
+    """Every full scan up to the `number`-th through the mapper (no poses: the mapper's
+    own frame), as the map is made: the picked scan's clusters and, for each, its track's
+    verdict by the scans so far: what the map would hold of it now (`unconfirmed`: seen
+    in fewer than `min_observations` scans, which the outputs leave out)."""
+    full = -1
+    for scan in scans:
+        if not scan.complete:
+            continue
+        full += 1
+        result = mapper.process(scan)
+        if full == number:
+            trees = {t.tree_id: t for t in mapper.trees()}
+            tracks = []
+            for found in result.clusters:
+                tree = trees.get(found.tree_id)
+                seen = tree.observations if tree is not None else 0
+                kind = tree.kind if seen >= min_observations else UNCONFIRMED
+                tracks.append(Track(found.tree_id, seen, kind))
+            return [found.cluster for found in result.clusters], tracks
+    raise ConfigError(f"--scan {number}: the input holds {full + 1} full scan(s)")
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """How many objects, how many judged vegetation, and of those spanning more than
-    TALL_EXTENT_M vertically how many are vegetation (share None when there are none)."""
-    tall = [r for r in rows if (r["extent_m"] or 0.0) > TALL_EXTENT_M]
+    TALL_EXTENT_M vertically with TALL_RETURNS returns or more how many are vegetation
+    (share None when there are none)."""
+    tall = [
+        r for r in rows if (r["extent_m"] or 0.0) > TALL_EXTENT_M and r["returns"] >= TALL_RETURNS
+    ]
     tall_vegetation = sum(r["vegetation"] for r in tall)
     verdicts: dict[str, int] = {}
     for r in rows:
         verdicts[r["verdict"]] = verdicts.get(r["verdict"], 0) + 1
+    tracked = {r["track"]: r["track_verdict"] for r in rows if "track" in r}
     return {
         "objects": len(rows),
         "vegetation": sum(r["vegetation"] for r in rows),
         "trees": verdicts.get("tree", 0),
+        # The tracks of this scan's objects that are trees by their scans so far (None:
+        # tracks not followed, --no-tracks).
+        "track_trees": sum(kind == "tree" for kind in tracked.values()) if tracked else None,
         "verdicts": dict(sorted(verdicts.items())),
         "tall_extent_m": TALL_EXTENT_M,
+        "tall_returns": TALL_RETURNS,
         "tall": len(tall),
         "tall_vegetation": tall_vegetation,
         "tall_vegetation_share": round(tall_vegetation / len(tall), 3) if tall else None,
@@ -162,6 +232,9 @@ COLUMNS = (
     ("ndv+", "ndvi_e", "{:>+5.2f}"),
     ("inten", "intensity", "{:>5.0f}"),
     ("int+", "intensity_e", "{:>+5.2f}"),
+    ("track", "track", "{:>5}"),
+    ("scans", "track_scans", "{:>5}"),
+    ("track is", "track_verdict", "{:<9}"),
 )
 
 
@@ -177,7 +250,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     """The per-object table (`treetraits inspect` without --json)."""
     cells = [[h for h, _, _ in COLUMNS]]
     for r in rows:
-        cells.append([_cell(fmt, r[key]) for _, key, fmt in COLUMNS])
+        cells.append([_cell(fmt, r.get(key)) for _, key, fmt in COLUMNS])
     widths = [max(len(row[i]) for row in cells) for i in range(len(COLUMNS))]
     lines = []
     for n, row in enumerate(cells):
@@ -195,12 +268,18 @@ def format_summary(summary: dict[str, Any]) -> str:
     share = summary["tall_vegetation_share"]
     tall = (
         f"{summary['tall_vegetation']} of {summary['tall']} spanning more than "
-        f"{summary['tall_extent_m']:g} m vertically are vegetation ({share:.0%})"
+        f"{summary['tall_extent_m']:g} m vertically with {summary['tall_returns']} returns "
+        f"or more are vegetation ({share:.0%})"
         if share is not None
         else f"none spans more than {summary['tall_extent_m']:g} m vertically"
     )
     verdicts = ", ".join(f"{n} {v}" for v, n in summary["verdicts"].items()) or "none"
+    tracks = (
+        ""
+        if summary["track_trees"] is None
+        else f"; {summary['track_trees']} of their tracks are trees by their scans so far"
+    )
     return (
         f"{summary['objects']} objects ({verdicts}); {summary['vegetation']} judged "
-        f"vegetation; {tall}"
+        f"vegetation; {tall}{tracks}"
     )

@@ -9,8 +9,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from treetraits.inspection import shown_verdict
+
 if TYPE_CHECKING:
-    from treetraits.pipeline.detection import Detection
+    from treetraits.pipeline.detection import Cluster
 
 WIDTH, HEIGHT = 1200, 800
 LEGEND_H = 44
@@ -30,6 +32,7 @@ VERDICT_COLOURS: dict[str, tuple[int, int, int]] = {
     "floating": (200, 40, 160),
     "tall": (200, 40, 160),
     "wide": (200, 40, 160),
+    "undecided": (0, 200, 230),  # yellow: a tree's shape, no evidence either way here
 }
 OTHER = (120, 120, 120)  # a verdict not listed above
 
@@ -116,7 +119,7 @@ def _scale_bar(image: np.ndarray, view: _View) -> None:
 
 def draw_scan(
     all_xyz: np.ndarray,
-    detection: Detection,
+    clusters: list[Cluster],
     T_base_lidar: np.ndarray,
     title: str,
     box: tuple[tuple[float, float], ...] | None = None,
@@ -134,7 +137,6 @@ def draw_scan(
 
     image = np.full((HEIGHT, WIDTH, 3), BACKGROUND, dtype=np.uint8)
     panel_w, panel_h = WIDTH // 2, HEIGHT - LEGEND_H
-    clusters = detection.clusters
     axis = side_axis(
         np.concatenate([np.asarray(c.points) for c in clusters]) if clusters else all_xyz
     )
@@ -156,7 +158,7 @@ def draw_scan(
         view = _View(lo, hi, rect)
         _dots(image, view, all_uv, RETURN_GREY, 1)
         for c, uv in zip(clusters, objects_uv, strict=True):
-            _dots(image, view, uv, colour_of(c.verdict), 2)
+            _dots(image, view, uv, colour_of(shown_verdict(c)), 2)
         # The LiDAR: a black cross.
         lp = view.px(lidar[[u, v]][None])[0]
         cv2.drawMarker(image, (int(lp[0]), int(lp[1])), TEXT, cv2.MARKER_CROSS, 12, 2)
@@ -167,9 +169,8 @@ def draw_scan(
             p = view.px(anchor)[0]
             x = int(min(max(p[0] + 3, rect[0] + 2), rect[0] + rect[2] - 30))
             y = int(min(max(p[1] - 3, rect[1] + 14), rect[1] + rect[3] - 4))
-            cv2.putText(
-                image, str(i), (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour_of(c.verdict), 1
-            )
+            colour = colour_of(shown_verdict(c))
+            cv2.putText(image, str(i), (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1)
         cv2.putText(
             image,
             f"{name}: {u_name} right, {v_name} up, base frame",
@@ -182,19 +183,19 @@ def draw_scan(
         _scale_bar(image, view)
     cv2.line(image, (panel_w, LEGEND_H), (panel_w, HEIGHT), (90, 90, 90), 1)
     cv2.line(image, (0, LEGEND_H), (WIDTH, LEGEND_H), (90, 90, 90), 1)
-    _legend(image, detection, title)
+    _legend(image, clusters, title)
     return image
 
 
-def _legend(image: np.ndarray, detection: Detection, title: str) -> None:
+def _legend(image: np.ndarray, clusters: list[Cluster], title: str) -> None:
     """The verdicts present in this scan with their counts (a verdict not in the scan is
     left out, so its colour appears nowhere in the picture), and the grey of the other
     returns."""
     import cv2
 
     counts: dict[str, int] = {}
-    for c in detection.clusters:
-        counts[c.verdict] = counts.get(c.verdict, 0) + 1
+    for c in clusters:
+        counts[shown_verdict(c)] = counts.get(shown_verdict(c), 0) + 1
     x, y = 10, 28
     cv2.putText(image, title, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, TEXT, 1)
     x += 12 + cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)[0][0]

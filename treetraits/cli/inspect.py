@@ -28,8 +28,14 @@ the robot; '-' = not measured):
   planar   share of its 0.3 m patches that are planar; pla+ its contribution
   ndvi     mean NDVI of its returns (none here: inspect runs without the camera); ndv+
   inten    median raw intensity (0-255); int+ its contribution
-The summary line counts the objects, those judged vegetation, and of the objects whose
-vertical extent exceeds 1 m how many are vegetation (their share)."""
+  track    the track (tree id) the mapper gave it, following every scan up to this one;
+  scans    the scans that track was seen in; track is: what the map holds of it now, by
+           all those scans (a tree, or why not; unconfirmed: seen in fewer scans than
+           output.min_observations, not in the map): one scan's verdict decides nothing
+verdict `undecided`: a tree's shape with no evidence either way in this scan (nothing
+measured, or dark echoes); its track decides. The summary line counts the objects, those
+judged vegetation, of the objects whose vertical extent exceeds 1 m with 50 returns or
+more how many are vegetation (their share), and how many of their tracks are trees."""
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -84,6 +90,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         "coloured by verdict (tree green, smooth/not_green red, low brown, thin/slender "
         "orange, floating/tall/wide purple), their ids, a legend and a scale bar",
     )
+    inspect.add_argument(
+        "--no-tracks",
+        action="store_true",
+        help="only this scan: do not map the scans before it (their tracks and what the "
+        "map holds of each object are then not shown; quicker for a late scan)",
+    )
     _add_decoder_options(inspect)
     inspect.set_defaults(run=run)
 
@@ -96,10 +108,12 @@ def run(args: argparse.Namespace) -> int:
         object_rows,
         pick_scan,
         summarise,
+        track_verdicts,
     )
     from treetraits.pipeline.detection import detect, to_base
     from treetraits.service.config import load_config
     from treetraits.service.replay import ReplayOptions, open_replay
+    from treetraits.service.survey import make_mapper
 
     if args.time is not None and not args.time == args.time:  # NaN
         raise ConfigError("--time must be a number of seconds")
@@ -123,8 +137,20 @@ def run(args: argparse.Namespace) -> int:
         reader.close()
     scan = picked.scan
     points = scan.distinct if scan.points["duplicate"].any() else scan.points
-    detection = detect(points, None, T_base_lidar, config.detection)
-    rows = object_rows(detection, T_base_lidar)
+    if args.no_tracks or config.pipeline.method.startswith("rph"):
+        clusters, tracks = detect(points, None, T_base_lidar, config.detection).clusters, None
+    else:
+        # The map as a replay makes it (no poses here: the mapper's own frame) up to this
+        # scan: each object's track and what its scans so far make of it.
+        reader = _reader(str(path), args)
+        try:
+            scans = (item for item in reader if isinstance(item, Scan))
+            mapper = make_mapper(config, calibration)
+            seen = config.output.min_observations
+            clusters, tracks = track_verdicts(scans, picked.number, mapper, seen)
+        finally:
+            reader.close()
+    rows = object_rows(clusters, T_base_lidar, tracks)
     summary = summarise(rows)
     facts = {
         "input": str(path),
@@ -142,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
         title = f"{path.name} scan {picked.number} (t {picked.t_s:.2f} s)"
         crop = config.detection.crop
         box = (crop.x_m, crop.y_m, crop.z_m)
-        image = draw_scan(to_base(points, T_base_lidar), detection, T_base_lidar, title, box)
+        image = draw_scan(to_base(points, T_base_lidar), clusters, T_base_lidar, title, box)
         write_png(args.png, image)
         facts["png"] = str(args.png)
     if args.json:
