@@ -478,6 +478,8 @@ def run_classify(args: argparse.Namespace) -> int:
                         for p in proposals
                     ],
                     "section": {"detection": {"classify": keys}},
+                    # Each object's cues (None: not measured), for a look of one's own.
+                    "objects": {name: data[name] for name in ("trees", "others", "near")},
                     "written": str(args.out) if args.out else None,
                 },
                 indent=1,
