@@ -224,3 +224,18 @@ def test_section_rounds_and_keeps_only_the_proposed_keys():
     assert set(keys) == {"texture_pivot_m", "texture_weight", "planar_weight"}
     assert keys["planar_weight"] == 0.0
     assert keys["texture_pivot_m"] == float(f"{keys['texture_pivot_m']:.4g}")
+
+
+def test_help_says_when_to_use_it():
+    import subprocess
+    import sys
+
+    result = subprocess.run(
+        [sys.executable, "-m", "treetraits", "calibrate", "classify", "--help"],
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 0
+    text = " ".join(result.stdout.split())
+    for words in ("new orchard", "different sensor", "field map", "[detection.classify]"):
+        assert words in text
