@@ -20,6 +20,7 @@ from treetraits.pipeline import vegetation_fit as fit
 from treetraits.pipeline.config import ClassifyConfig
 from treetraits.service.config import load_config
 from treetraits.sim.clutter import ClutterSettings
+from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.run import SurveySettings
 
 # Two rows of two trees, 11 m driven, with posts, a person, a parked vehicle and a wall:
@@ -149,13 +150,22 @@ def test_no_field_map_tree_matched_exits_2(tmp_path, capsys):
     assert "Traceback" not in err
 
 
+def test_a_recording_without_gnss_exits_2(tmp_path, capsys):
+    # The receiver out for the whole drive: the run maps in odom, nothing is placed.
+    blind = twin_survey(dataclasses.replace(TINY, gnss=GnssSettings(outages=((0.0, 1e6),))))
+    argv = ["calibrate", "classify", str(blind.recording), "--field-map", str(blind.field_map)]
+    assert main(argv) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "GNSS fixes" in err and "(GNSS fixes in the recording: 0)" in err
+
+
 def test_an_empty_field_map_exits_2(tmp_path, capsys):
     tiny = twin_survey(TINY)
     empty = tmp_path / "empty.csv"
     empty.write_text("id,lat,lon\n")
     argv = ["calibrate", "classify", str(tiny.recording), "--field-map", str(empty)]
     assert main(argv) == EXIT_USAGE
-    assert "treetraits: error:" in capsys.readouterr().err
+    assert "holds no trees" in capsys.readouterr().err
 
 
 # --- the statistics, on hand-made distributions ---------------------------------------

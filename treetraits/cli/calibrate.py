@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -428,6 +429,12 @@ def run_classify(args: argparse.Namespace) -> int:
         if not path.is_file():
             raise SourceError(f"{path}: no such {what} file")
     data = collect_cues(args.recording, args.field_map, args.calibration, args.config)
+    if data["summary"].get("data_loss"):
+        print(
+            f"treetraits: warning: {args.recording}: damaged or cut short: the cues are "
+            "those of the part that could be read",
+            file=sys.stderr,
+        )
     if not data["trees"]:
         fixes = data["summary"].get("fixes")
         raise ConfigError(
