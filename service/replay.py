@@ -209,6 +209,10 @@ class ReplayReport:
     out_dir: Path
     missing: list[Tree] = field(default_factory=list)  # field-map trees passed, not found
     rejected: list[Tree] = field(default_factory=list)  # objects that are not trees
+    # The mapper's final records of every object reported or rejected (`TrackedTree`,
+    # with its cues) and the run's UTM grid (None: no fix): `calibrate classify` reads them.
+    mapped: list = field(default_factory=list)
+    grid: object = None
 
 
 # The files a replay writes into its output directory (service/outdir.py owns them).
@@ -333,6 +337,7 @@ def run_replay(
             writer.commit(outcome)
         exported = writer.export()
         trees = exported.found
+        mapped = writer.seen()
         summary.update(
             scans=writer.scans,
             trees=len(trees),
@@ -351,7 +356,15 @@ def run_replay(
         writer.set_facts({"path": writer.path_utm()})
     finally:
         writer.close()
-    return ReplayReport(summary, trees, out_dir, exported.missing, exported.rejected)
+    return ReplayReport(
+        summary,
+        trees,
+        out_dir,
+        exported.missing,
+        exported.rejected,
+        mapped,
+        processor.localizer.grid,
+    )
 
 
 def format_table(trees: list[Tree]) -> str:
