@@ -28,16 +28,20 @@ def main() -> None:
     print(f"{'model':10} {'triangles':>9} " + " ".join(f"{r:>5.1f} m" for r in ranges) + "   s")
     for name in args.models.split(","):
         start = time.perf_counter()
-        cells, triangles = [], 0
+        cells, returns_at, triangles = [], [], 0
         for r in ranges:
-            values = []
+            values, ranges_m = [], []
             for seed in range(args.seeds):
                 scan = tree_scan(name, r, seed)
                 triangles = scan.triangles
                 values.append(roughness(scan.points, scan.ring, np.zeros(2)))
+                ranges_m.append(float(np.median(scan.range_m)))
             cells.append(float(np.median(values)))
+            returns_at.append(float(np.median(ranges_m)))
         took = time.perf_counter() - start
         print(f"{name:10} {triangles:9d} " + " ".join(f"{c:7.3f}" for c in cells) + f" {took:4.1f}")
+        # Where the returns are: the near side at the range, the flanks farther.
+        print(f"{'':10} {'median m':>9} " + " ".join(f"{r:7.2f}" for r in returns_at))
 
 
 if __name__ == "__main__":
