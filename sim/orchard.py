@@ -3,7 +3,8 @@ the sensor emulators ray-cast.
 
 A tree is a trunk (a cylinder) under a porous crown: thousands of small leaf triangles
 scattered through an ellipsoid, denser towards its surface, so that LiDAR beams sometimes
-pass a little way in, as they do in a real canopy. Ground truth width and height are
+pass a little way in, as they do in a real canopy (the default `scattered` foliage; the
+other models of `sim.foliage` fill it otherwise). Ground truth width and height are
 measured on the generated geometry with the same definitions as the traits: height is the
 top of the tree above the ground at its trunk, width the largest horizontal distance
 between two points of the tree.

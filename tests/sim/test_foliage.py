@@ -157,3 +157,13 @@ def test_a_mix_draws_each_tree_from_its_models():
         tree_foliage(TreeSettings(foliage="clumped"), 3, np.random.default_rng(0))
         == ["clumped"] * 3
     )
+
+
+def test_sim_foliage_option_names_one_model_or_a_mix():
+    from treetraits.cli.sim import _foliage
+    from treetraits.errors import ConfigError
+
+    assert _foliage("dense") == {"foliage": "dense"}
+    assert _foliage("dense, sparse") == {"foliage_mix": ("dense", "sparse")}
+    with pytest.raises(ConfigError, match="unknown 'hedge'; choose from scattered"):
+        _foliage("dense,hedge")
