@@ -3,7 +3,8 @@ the sensor emulators ray-cast.
 
 A tree is a trunk (a cylinder) under a porous crown: thousands of small leaf triangles
 scattered through an ellipsoid, denser towards its surface, so that LiDAR beams sometimes
-pass a little way in, as they do in a real canopy. Ground truth width and height are
+pass a little way in, as they do in a real canopy (the default `scattered` foliage; the
+other models of `sim.foliage` fill it otherwise). Ground truth width and height are
 measured on the generated geometry with the same definitions as the traits: height is the
 top of the tree above the ground at its trunk, width the largest horizontal distance
 between two points of the tree.
@@ -15,6 +16,9 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+
+from treetraits.sim.foliage import DEFAULT as DEFAULT_FOLIAGE
+from treetraits.sim.foliage import crown_leaves, foliage_model
 
 GROUND_ID = 0  # geometry label of the ground; trees are labelled by their index + 1
 
@@ -127,6 +131,27 @@ class TreeSettings:
     # Hedgerow: crowns 3.0-3.3 m wide, so at 2.5-3 m in-row spacing they touch and overlap,
     # as in high-density plantings pruned into a continuous wall.
     hedgerow: bool = False
+    # How leaves fill the crowns (sim.foliage.MODELS): scattered is the paper's twin, dense
+    # and broadleaf are as smooth along a ring as a real canopy, clumped and sparse between
+    # and beyond. foliage_mix: each tree's model drawn from these instead.
+    foliage: str = DEFAULT_FOLIAGE
+    foliage_mix: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in (self.foliage, *self.foliage_mix):
+            foliage_model(name)  # a ValueError naming the models
+
+    @property
+    def shapes_default(self) -> bool:
+        """Every tree of the default size and shape (foliage aside)."""
+        return replace(self, foliage=DEFAULT_FOLIAGE, foliage_mix=()) == TreeSettings()
+
+
+def tree_foliage(settings: TreeSettings, count: int, rng: np.random.Generator) -> list[str]:
+    """Each tree's foliage model: `foliage`, or drawn uniformly from `foliage_mix`."""
+    if not settings.foliage_mix:
+        return [settings.foliage] * count
+    return [settings.foliage_mix[int(i)] for i in rng.integers(0, len(settings.foliage_mix), count)]
 
 
 # (width m, height m, trunk height m, trunk radius m) ranges of each kind of tree.
@@ -242,20 +267,24 @@ def tree_mesh(
     rng: np.random.Generator,
     leaves_per_m3: float = 4000.0,
     leaf_size: float = 0.10,
+    foliage: str = DEFAULT_FOLIAGE,
+    foliage_rng: np.random.Generator | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (N, 3) float32 and triangles (M, 3) int32 of one tree, in the world frame."""
+    """Vertices (N, 3) float32 and triangles (M, 3) int32 of one tree, in the world frame.
+    `scattered` foliage (`leaves_per_m3`, `leaf_size`) is drawn from `rng` as it always
+    was; any other model (`sim.foliage`) from `foliage_rng` (default `rng`)."""
+    model = foliage_model(foliage)
     base_z = float(ground.height(spec.x, spec.y))
     a, b = spec.crown_radius, spec.crown_half_height
     centre = np.array([spec.x, spec.y, base_z + spec.trunk_height + b])
-    if spec.lobes:
-        leaf_vertices = np.vstack(
-            [
-                _leaves(centre + np.array([dx, dy, dz]), la, lb, rng, leaves_per_m3, leaf_size)
-                for dx, dy, dz, la, lb in spec.lobes
-            ]
-        )
+    ellipsoids = [(centre + np.array([dx, dy, dz]), la, lb) for dx, dy, dz, la, lb in spec.lobes]
+    ellipsoids = ellipsoids or [(centre, a, b)]
+    if model.name == DEFAULT_FOLIAGE:
+        parts = [_leaves(c, la, lb, rng, leaves_per_m3, leaf_size) for c, la, lb in ellipsoids]
     else:
-        leaf_vertices = _leaves(centre, a, b, rng, leaves_per_m3, leaf_size)
+        leaf_rng = rng if foliage_rng is None else foliage_rng
+        parts = [crown_leaves(model, c, la, lb, leaf_rng) for c, la, lb in ellipsoids]
+    leaf_vertices = np.vstack(parts)
     count = len(leaf_vertices) // 3
     leaf_triangles = np.arange(count * 3, dtype=np.int32).reshape(-1, 3)
 

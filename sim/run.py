@@ -39,6 +39,7 @@ from treetraits.sim.orchard import (
     ground_mesh,
     measure_truth,
     missing_truth,
+    tree_foliage,
     tree_mesh,
     tree_sways,
     vary_trees,
@@ -193,7 +194,7 @@ def build_world(
     `poses` (t s, x, y, yaw; it keeps clear of the path) and the run's start `t0_s`."""
     ground = make_ground(settings)
     specs = grid_orchard(settings.columns, settings.rows, settings.width, settings.length, rng)
-    if settings.trees != TreeSettings():
+    if not settings.trees.shapes_default:
         # Their own generator: the default twin's trees are drawn exactly as before.
         specs = vary_trees(specs, settings.trees, np.random.default_rng([settings.seed, 2]))
     # grid_orchard lays rows along +x from y = 0; centre the columns on the path.
@@ -213,12 +214,16 @@ def build_world(
     scene = Scene()
     scene.add(*ground_mesh(ground, (-40, 60), (-40, 40)), label=0)
     meshes, truths = [], []
-    for spec in specs:
+    # Foliage other than scattered draws from its own generator: `rng` (the default
+    # twin's leaves and, after them, its sensors' noise) is drawn exactly as before.
+    foliage_rng = np.random.default_rng([settings.seed, 5])
+    foliage = tree_foliage(settings.trees, len(specs), foliage_rng)
+    for spec, model in zip(specs, foliage, strict=True):
         if spec.kind == "missing":
             meshes.append(None)
             truths.append(missing_truth(spec))
             continue
-        vertices, triangles = tree_mesh(spec, ground, rng)
+        vertices, triangles = tree_mesh(spec, ground, rng, foliage=model, foliage_rng=foliage_rng)
         meshes.append((vertices, triangles))
         truths.append(measure_truth(spec, vertices, ground))
     # The sway's draws come from a generator of their own: the same seed grows the same

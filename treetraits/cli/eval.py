@@ -13,6 +13,7 @@ from treetraits.errors import ConfigError
 
 def register(commands: argparse._SubParsersAction) -> None:
     from treetraits.evaluation.methods import DEFAULT_METHODS, METHODS
+    from treetraits.sim.foliage import MODELS
 
     ev = commands.add_parser(
         "eval",
@@ -64,6 +65,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         "[traits], [localization] and [output] gates are used by every replay (default: "
         "the built-in defaults); each method still sets pipeline.method and traits.method",
     )
+    ev.add_argument(
+        "--foliage",
+        choices=tuple(MODELS),
+        metavar="MODEL",
+        help=f"grow every case's crowns with this foliage model ({', '.join(MODELS)}; "
+        "default: each case's own, scattered in the paper suite, mixed in the field suite)",
+    )
     ev.add_argument("--list", action="store_true", help="list the cases and exit")
     ev.set_defaults(run=run)
 
@@ -96,6 +104,8 @@ def run(args: argparse.Namespace) -> int:
     if args.jobs is not None and args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
     cases = select_cases(args.cases, suite=args.suite)
+    if args.foliage is not None:
+        cases = [case.with_foliage(args.foliage) for case in cases]
     methods = parse_methods(args.methods)
     config = load_config(args.config)
     # The lock only: a rerun reuses the recordings cached in OUT/cases/ and rewrites the

@@ -184,6 +184,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="3.0-3.3 m crowns: with --grid Wx2.75 (2.5-3 m in-row) they touch and overlap",
     )
     trees.add_argument(
+        "--foliage",
+        default="scattered",
+        metavar="MODEL[,MODEL...]",
+        help="how leaves fill the crowns (docs/sim_replay.md): scattered (default, the "
+        "paper's twin), dense, broadleaf, clumped, sparse; several: each tree draws one",
+    )
+    trees.add_argument(
         "--missing",
         type=int,
         default=0,
@@ -278,6 +285,20 @@ def _antenna(text: str) -> tuple[float, float, float]:
     return x, y, z
 
 
+def _foliage(text: str) -> dict:
+    """TreeSettings' foliage fields from `--foliage`: one model, or a mix to draw from."""
+    from treetraits.sim.foliage import MODELS
+
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in MODELS]
+    if not names or unknown:
+        raise ConfigError(
+            f"--foliage: unknown {', '.join(map(repr, unknown)) or 'empty list'}; "
+            f"choose from {', '.join(MODELS)}"
+        )
+    return {"foliage": names[0]} if len(names) == 1 else {"foliage_mix": names}
+
+
 def _within(option: str, value: float, low: float, high: float) -> None:
     if not (math.isfinite(value) and low <= value <= high):
         raise ConfigError(f"{option} must be a finite number in [{low:g}, {high:g}], got {value}")
@@ -345,6 +366,7 @@ def run_sim(args: argparse.Namespace) -> int:
     _within("--host-clock-offset", args.host_clock_offset, -DAY_S, DAY_S)
     if args.gnss_converge is not None:
         _within("--gnss-converge", args.gnss_converge, 0, DAY_S)
+    _foliage(args.foliage)  # a ConfigError before any work
     if args.wires and not args.posts:
         raise ConfigError("--wires hang between posts: add --posts")
     settings = SurveySettings(
@@ -380,6 +402,7 @@ def run_sim(args: argparse.Namespace) -> int:
             irregular_fraction=args.irregular,
             missing=args.missing,
             hedgerow=args.hedgerow,
+            **_foliage(args.foliage),
         ),
         clutter=ClutterSettings(
             weeds=args.weeds,

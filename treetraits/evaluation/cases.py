@@ -13,6 +13,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from treetraits.sim.clutter import ClutterSettings
+from treetraits.sim.foliage import MODELS
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.orchard import TerrainSettings, TreeSettings, WindSettings
 from treetraits.sim.run import SurveySettings
@@ -51,6 +52,12 @@ class Case:
 
     def paper_row(self, row: str) -> PaperRow | None:
         return next((p for p in self.paper if p.row == row), None)
+
+    def with_foliage(self, model: str) -> Case:
+        """The case with every crown of foliage `model` (`eval --foliage`; its own mix and
+        model replaced)."""
+        trees = dataclasses.replace(self.survey.trees, foliage=model, foliage_mix=())
+        return dataclasses.replace(self, survey=dataclasses.replace(self.survey, trees=trees))
 
 
 def _rows(names, width_ours, width_rph, height_ours, height_rph) -> tuple[PaperRow, ...]:
@@ -169,6 +176,10 @@ CASES: tuple[Case, ...] = (
 # antenna RTK (no HDT: the heading comes from wheels and course over ground), with the
 # Jackal MCU's IMU on, as the twin's defaults are.
 
+# Foliage: the detection cases between them grow every model of sim.foliage (the paper's
+# scattered crowns in field-missing and the localisation cases, which test the pose); the
+# irregular crowns each draw one from all of them.
+FOLIAGE_MIX = tuple(MODELS)
 SLOPED = TerrainSettings(slope_across=0.06, undulation_m=0.08, furrow_m=0.05)
 CLUTTER = ClutterSettings(
     weeds=120,
@@ -185,7 +196,14 @@ FIELD_CASES: tuple[Case, ...] = (
     Case(
         "field-slope",
         "field: 12 % along, 6 % across, undulation and furrows, straight",
-        SurveySettings(path="straight", rows=2, goal=16.0, slope=0.12, terrain=SLOPED),
+        SurveySettings(
+            path="straight",
+            rows=2,
+            goal=16.0,
+            slope=0.12,
+            terrain=SLOPED,
+            trees=TreeSettings(foliage="dense"),
+        ),
         (),
         suite="field",
         tests="a pitched and rolled robot on uneven ground: the ground fit, the crop box and "
@@ -194,7 +212,14 @@ FIELD_CASES: tuple[Case, ...] = (
     Case(
         "field-clutter-n",
         "field: weeds, drip lines, posts and wire, people, vehicle, wall; N path",
-        SurveySettings(path="n", rows=2, length=4.0, goal=9.0, clutter=CLUTTER),
+        SurveySettings(
+            path="n",
+            rows=2,
+            length=4.0,
+            goal=9.0,
+            clutter=CLUTTER,
+            trees=TreeSettings(foliage="clumped"),
+        ),
         (),
         suite="field",
         tests="false positives on things that are not trees (by kind), the walking person, "
@@ -204,7 +229,11 @@ FIELD_CASES: tuple[Case, ...] = (
         "field-hedgerow",
         "field: hedgerow, 2.75 m in-row spacing, 3 m crowns touching, straight",
         SurveySettings(
-            path="straight", rows=5, length=2.75, goal=17.0, trees=TreeSettings(hedgerow=True)
+            path="straight",
+            rows=5,
+            length=2.75,
+            goal=17.0,
+            trees=TreeSettings(hedgerow=True, foliage="dense"),
         ),
         (),
         suite="field",
@@ -218,7 +247,7 @@ FIELD_CASES: tuple[Case, ...] = (
             width=6.0,
             length=6.0,
             goal=22.0,
-            trees=TreeSettings(young_fraction=0.34, old_fraction=0.34),
+            trees=TreeSettings(young_fraction=0.34, old_fraction=0.34, foliage="sparse"),
         ),
         (),
         suite="field",
@@ -236,7 +265,11 @@ FIELD_CASES: tuple[Case, ...] = (
     Case(
         "field-irregular",
         "field: irregular (lobed) crowns, straight",
-        SurveySettings(path="straight", goal=18.0, trees=TreeSettings(irregular_fraction=1.0)),
+        SurveySettings(
+            path="straight",
+            goal=18.0,
+            trees=TreeSettings(irregular_fraction=1.0, foliage_mix=FOLIAGE_MIX),
+        ),
         (),
         suite="field",
         tests="widths and positions of lopsided crowns (the truth is the trunk)",
@@ -251,6 +284,7 @@ FIELD_CASES: tuple[Case, ...] = (
             slope=0.08,
             terrain=TerrainSettings(slope_across=0.03, undulation_m=0.05),
             wind=WindSettings(speed_mps=4.4),
+            trees=TreeSettings(foliage="broadleaf"),
         ),
         (),
         suite="field",

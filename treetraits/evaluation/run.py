@@ -89,6 +89,7 @@ def parse_methods(spec: str | None) -> tuple[str, ...]:
 SIMULATOR_FILES = (
     "run.py",
     "orchard.py",
+    "foliage.py",
     "paths.py",
     "lidar.py",
     "camera.py",
