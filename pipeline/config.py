@@ -242,13 +242,13 @@ class ClassifyConfig:
     planar_pivot: float = 0.4
     planar_scale: float = 0.3
     planar_weight: float = 0.5
-    # NDVI, where the camera saw at least `min_ndvi_share` of the returns: bare soil reads
-    # 0.1-0.2, wood, metal, paint and cloth below 0.3, citrus foliage 0.5-0.8. The most
-    # direct evidence of live leaves: twice a surface cue's weight.
+    # NDVI, the mean over the returns the camera saw (in full from 100 of them,
+    # `vegetation.FULL_NDVI_RETURNS`): bare soil reads 0.1-0.2, wood, metal, paint and
+    # cloth below 0.3, citrus foliage 0.5-0.8. The most direct evidence of live leaves:
+    # twice a surface cue's weight.
     min_ndvi: float = 0.3
     ndvi_scale: float = 0.15
     ndvi_weight: float = 2.0
-    min_ndvi_share: float = 0.3
     # Intensity (the VLP-16's calibrated reflectivity, 0-100 % diffuse): leaves reflect
     # 40-50 % at 905 nm, and real canopy's crowns measured a median of 12-26 (partial hits
     # on leaf edges lower it); black plastic, tyres and dark cloth under 10 % (real indoor
@@ -446,8 +446,17 @@ def _validate_detection(d: DetectionConfig) -> None:
     _need(0 <= f.min_width_m < f.max_width_m, "detection.classify: 0 <= min < max width")
     _need(f.min_aspect >= 0, "detection.classify.min_aspect must be >= 0")
     _need(f.min_roughness_m >= 0, "detection.classify.min_roughness_m must be >= 0")
-    _need(0 <= f.min_ndvi_share <= 1, "detection.classify.min_ndvi_share must be in [0, 1]")
     _need(-1 <= f.min_ndvi <= 1, "detection.classify.min_ndvi must be in [-1, 1]")
+    for name in ("texture_step_m", "texture_pivot_m", "planar_patch_m", "planar_noise_m"):
+        _need(getattr(f, name) > 0, f"detection.classify.{name} must be > 0")
+    for name in ("planar_scale", "ndvi_scale", "intensity_scale"):
+        _need(getattr(f, name) > 0, f"detection.classify.{name} must be > 0")
+    for name in ("texture_weight", "planar_weight", "ndvi_weight", "intensity_weight"):
+        _need(getattr(f, name) >= 0, f"detection.classify.{name} must be >= 0")
+    _need(
+        0 <= f.dark_intensity < f.clear_intensity,
+        "detection.classify: 0 <= dark_intensity < clear_intensity",
+    )
     _need(0 < f.min_tree_share <= 1, "detection.classify.min_tree_share must be in (0, 1]")
     _need(0 <= f.min_tree_share_all <= 1, "detection.classify.min_tree_share_all: [0, 1]")
     _need(k.voxel_m > 0 and k.tolerance_m > 0, "detection.cluster: voxel_m, tolerance_m > 0")

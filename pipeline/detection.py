@@ -733,8 +733,10 @@ def _features(
         rings = all_rings[ends[k] - sizes[k] : ends[k]]
         shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]))
         mine = upper[ends[k] - sizes[k] : ends[k]]
-        crown_ndvi, crown_seen = _ndvi_of(None if values is None else values[mine])
-        cues = replace(surface[k], ndvi=crown_ndvi, ndvi_share=crown_seen)
+        crown_ndvi, crown_seen, seen_returns = _ndvi_of(None if values is None else values[mine])
+        cues = replace(
+            surface[k], ndvi=crown_ndvi, ndvi_share=crown_seen, ndvi_returns=seen_returns
+        )
         evidence = weigh(cues, classify)
         clusters.append(
             Cluster(
@@ -756,13 +758,13 @@ def _features(
     return clusters
 
 
-def _ndvi_of(values: np.ndarray | None) -> tuple[float, float]:
-    """The mean NDVI of the returns that have one (NaN: none) and their share."""
+def _ndvi_of(values: np.ndarray | None) -> tuple[float, float, int]:
+    """The mean NDVI of the returns that have one (NaN: none), their share and count."""
     if values is None or len(values) == 0:
-        return math.nan, 0.0
+        return math.nan, 0.0, 0
     known = np.isfinite(values)
     seen = int(np.count_nonzero(known))
-    return (float(values[known].mean()) if seen else math.nan), seen / len(values)
+    return (float(values[known].mean()) if seen else math.nan), seen / len(values), seen
 
 
 class StageClock:

@@ -16,7 +16,7 @@ tree on its own:
 - `planar_share`: the share of the cluster's 0.3 m patches whose returns lie within
   the range noise of one plane. Walls, panels, boxes are made of planes; foliage at
   that scale is a volume of leaves (real canopy 0-0.26, real indoor objects 0.09-1.0).
-- `ndvi`: the camera's mean NDVI on the object where it saw it; live leaves reflect
+- `ndvi`: the camera's mean NDVI over the object's returns it saw; live leaves reflect
   near-infrared and absorb red (citrus 0.5-0.8), soil, wood, paint, cloth and metal
   do not (< 0.3). The most direct evidence of live foliage, when there is a frame.
 - `intensity`: the median return intensity (the VLP-16's calibrated reflectivity).
@@ -26,9 +26,10 @@ tree on its own:
   the surface cues can be trusted: a weak echo's range is noisy, and noise looks like
   leaves, so their evidence for foliage counts by `echo_clarity`.
 
-A track adds up its clusters' cues (`EvidenceSum`): each cue's contribution is the mean
-over the scans that measured it, so an object the camera saw in a tenth of its scans
-still has its NDVI counted once, in full.
+A track adds up its clusters' cues (`EvidenceSum`): each surface cue's contribution is
+its mean over the scans that measured it, and NDVI's the mean over every return the
+camera saw, so an object the camera saw in a tenth of its scans, or a sliver of it in
+each, still has its NDVI counted in full.
 """
 
 from __future__ import annotations
@@ -56,6 +57,12 @@ _MIN_PATCHES = 3
 # a share of 3 patches are loose: a crown's fragment of 20 returns is not a wall).
 FULL_TRIPLES = 30
 FULL_PATCHES = 10
+# NDVI counts in full once this many of an object's returns have one (a mean over 100
+# returns is the object's colour, not a stray pixel's or a projection's edge), in
+# proportion below. Not a share of its returns: a crown beside the path is mostly out of
+# the camera's view, and the part it sees is as green (the twin's hedgerow: 34 % of its
+# crowns' clusters had any NDVI, most of them on under 5 % of their returns).
+FULL_NDVI_RETURNS = 100
 
 CUES = ("texture", "planar", "ndvi", "intensity")
 
@@ -70,6 +77,7 @@ class Cues:
     planar_patches: int = 0  # the patches its share is of
     ndvi: float = math.nan  # mean of its returns that have one
     ndvi_share: float = 0.0  # share of its returns with an NDVI
+    ndvi_returns: int = 0  # its returns with an NDVI
     intensity: float = math.nan  # median raw intensity (0-255)
 
 
@@ -112,16 +120,16 @@ def weigh(cues: Cues, config: ClassifyConfig) -> Evidence:
         planar=config.planar_weight * planar,
         ndvi=config.ndvi_weight * ndvi,
         intensity=config.intensity_weight * intensity,
-        measured=measured(cues, config),
+        measured=measured(cues),
     )
 
 
-def measured(cues: Cues, config: ClassifyConfig) -> tuple[str, ...]:
-    """The cues measured on the cluster: NDVI where the camera saw enough of it."""
+def measured(cues: Cues) -> tuple[str, ...]:
+    """The cues measured on the cluster (NDVI: on any of its returns)."""
     values = {
         "texture": cues.texture_m,
         "planar": cues.planar_share,
-        "ndvi": cues.ndvi if cues.ndvi_share >= config.min_ndvi_share else math.nan,
+        "ndvi": cues.ndvi if cues.ndvi_returns > 0 else math.nan,
         "intensity": cues.intensity,
     }
     return tuple(cue for cue in CUES if math.isfinite(values[cue]))
@@ -130,8 +138,8 @@ def measured(cues: Cues, config: ClassifyConfig) -> tuple[str, ...]:
 def contributions(cues: Cues, config: ClassifyConfig) -> tuple[float, float, float, float]:
     """Each cue in [-1, 1] (0 where it is not measured): texture on a log scale, one
     unit per doubling from `texture_pivot_m`; planarity and NDVI linear about their
-    pivots; intensity about its pivot over `intensity_scale`. Texture and planarity
-    measured on few samples count in proportion (`FULL_TRIPLES`, `FULL_PATCHES`)."""
+    pivots; intensity about its pivot over `intensity_scale`. Cues measured on few
+    samples count in proportion (`FULL_TRIPLES`, `FULL_PATCHES`, `FULL_NDVI_RETURNS`)."""
     texture = 0.0
     if math.isfinite(cues.texture_m) and cues.texture_m > 0:
         texture = _clip(math.log2(cues.texture_m / config.texture_pivot_m))
@@ -145,12 +153,18 @@ def contributions(cues: Cues, config: ClassifyConfig) -> tuple[float, float, flo
         if planar > 0:
             planar *= echo_clarity(cues.intensity, config)
     ndvi = 0.0
-    if cues.ndvi_share >= config.min_ndvi_share and math.isfinite(cues.ndvi):
+    if cues.ndvi_returns > 0 and math.isfinite(cues.ndvi):
         ndvi = _clip((cues.ndvi - config.min_ndvi) / config.ndvi_scale)
+        ndvi *= ndvi_confidence(cues.ndvi_returns)
     intensity = 0.0
     if math.isfinite(cues.intensity):
         intensity = _clip((cues.intensity - config.intensity_pivot) / config.intensity_scale)
     return texture, planar, ndvi, intensity
+
+
+def ndvi_confidence(returns: int) -> float:
+    """How far an NDVI mean over `returns` returns counts, 0-1."""
+    return min(1.0, returns / FULL_NDVI_RETURNS)
 
 
 def echo_clarity(intensity: float, config: ClassifyConfig) -> float:
@@ -171,7 +185,10 @@ def _clip(value: float) -> float:
 @dataclass
 class EvidenceSum:
     """A track's cues over its scans: per cue, the sum of its raw values and of its
-    contributions, and how many scans measured it."""
+    contributions, and how many scans measured it. NDVI is kept along the track by
+    return: its value and its contribution (at full confidence) are means over every
+    return the camera saw, and it counts in full once the track has `FULL_NDVI_RETURNS`
+    of them, however few each scan saw."""
 
     sums: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
@@ -184,9 +201,13 @@ class EvidenceSum:
             "intensity": cues.intensity,
         }
         for cue in evidence.measured:
-            self.sums[cue] = self.sums.get(cue, 0.0) + values[cue]
-            self.sums[f"{cue}:e"] = self.sums.get(f"{cue}:e", 0.0) + getattr(evidence, cue)
-            self.counts[cue] = self.counts.get(cue, 0) + 1
+            weight, contribution = 1, getattr(evidence, cue)
+            if cue == "ndvi":  # by return, at full confidence
+                weight = cues.ndvi_returns
+                contribution /= ndvi_confidence(weight)
+            self.sums[cue] = self.sums.get(cue, 0.0) + values[cue] * weight
+            self.sums[f"{cue}:e"] = self.sums.get(f"{cue}:e", 0.0) + contribution * weight
+            self.counts[cue] = self.counts.get(cue, 0) + weight
 
     def absorb(self, other: EvidenceSum) -> None:
         for key, value in other.sums.items():
@@ -195,7 +216,8 @@ class EvidenceSum:
             self.counts[key] = self.counts.get(key, 0) + value
 
     def mean(self, cue: str) -> float:
-        """The cue's mean value over the scans that measured it (NaN: none)."""
+        """The cue's mean value over the scans that measured it (NDVI: over the returns
+        that had one; NaN: none)."""
         count = self.counts.get(cue, 0)
         return self.sums[cue] / count if count else math.nan
 
@@ -205,6 +227,7 @@ class EvidenceSum:
         for cue in CUES:
             count = self.counts.get(cue, 0)
             means[cue] = self.sums[f"{cue}:e"] / count if count else 0.0
+        means["ndvi"] *= ndvi_confidence(self.counts.get("ndvi", 0))
         return Evidence(**means, measured=tuple(c for c in CUES if self.counts.get(c)))
 
 

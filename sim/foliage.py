@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from treetraits.drivers.records import Scan
+
 
 @dataclass(frozen=True)
 class Foliage:
@@ -148,6 +150,7 @@ class TreeScan:
     ring: np.ndarray  # (N,) laser ring of each return
     range_m: np.ndarray  # (N,) horizontal distance from the LiDAR
     triangles: int  # of the tree's mesh
+    scan: Scan  # the whole scan, as the pipeline takes it (`detection.detect`)
 
 
 def tree_scan(
@@ -195,4 +198,5 @@ def tree_scan(
         p["ring"][crown].astype(int),
         np.hypot(xyz[crown, 0], xyz[crown, 1]),
         len(triangles),
+        scan,
     )

@@ -107,10 +107,10 @@ WALL = Cues(texture_m=0.008, texture_triples=200, planar_share=0.9, planar_patch
         ({"width_m": 12.0}, WALL, WIDE),  # a building
         ({}, WALL, SMOOTH),  # a wall, a vehicle
         # Rough, but the camera sees no leaves on it: the colour outweighs the surface.
-        ({}, replace(CROWN, ndvi=0.1, ndvi_share=0.8), NOT_GREEN),
-        ({}, replace(CROWN, ndvi=0.1, ndvi_share=0.1), TREE),  # too little of it seen to say
+        ({}, replace(CROWN, ndvi=0.1, ndvi_returns=400), NOT_GREEN),
+        ({}, replace(CROWN, ndvi=0.1, ndvi_returns=10), TREE),  # too little of it seen to say
         # A pruned hedge smoother than the texture's pivot, plainly green: a tree.
-        ({}, replace(CROWN, texture_m=0.025, ndvi=0.75, ndvi_share=0.6), TREE),
+        ({}, replace(CROWN, texture_m=0.025, planar_share=0.8, ndvi=0.75, ndvi_returns=300), TREE),
         # Nothing measured, or a dark object's noisy echoes (no credit for looking rough):
         # undecided in one scan, the shape's verdict stands; the track decides.
         ({}, Cues(), TREE),
@@ -188,14 +188,19 @@ def test_a_track_is_what_its_verdicts_and_its_evidence_over_all_its_scans_say():
     # A smooth, pruned crown the camera saw green in 3 scans of 40: the NDVI's mean over
     # the scans that saw it counts in full, not diluted by those that did not.
     hedge = votes(replace(CROWN, texture_m=0.025), smooth=37)
-    hedge.absorb(votes(replace(CROWN, texture_m=0.025, ndvi=0.75, ndvi_share=0.6), tree=3))
+    hedge.absorb(votes(replace(CROWN, texture_m=0.025, ndvi=0.75, ndvi_returns=300), tree=3))
     assert hedge.kind(0.5, 0.25) == TREE
+    # A crown beside the path, a sliver of it in the camera's view in each scan (10
+    # returns of 500): the green of all those slivers counts in full along the track.
+    sliver = replace(CROWN, texture_m=0.025, planar_share=0.8, ndvi=0.75, ndvi_returns=10)
+    assert votes(sliver, smooth=40).kind(0.5, 0.25) == TREE
+    assert votes(sliver, smooth=5).kind(0.5, 0.25) == SMOOTH  # 50 returns: half the weight
     # The same crown never seen by the camera: its surface alone speaks against it.
     assert (
         votes(replace(CROWN, texture_m=0.02, planar_share=0.5), smooth=40).kind(0.5, 0.25) == SMOOTH
     )
     # A person the camera saw in a few scans, rough-looking clothes: not green.
-    person = votes(replace(CROWN, ndvi=0.12, ndvi_share=0.7), not_green=4)
+    person = votes(replace(CROWN, ndvi=0.12, ndvi_returns=150), not_green=4)
     person.absorb(votes(tree=6))
     assert person.kind(0.5, 0.25) == NOT_GREEN
     mixed = votes(tree=2, low=3)
