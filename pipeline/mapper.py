@@ -17,7 +17,7 @@ import numpy as np
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Scan, take_points
 from treetraits.jit import kernel, kernel_layout, warm_up
-from treetraits.pipeline.classify import EVIDENCE_REASONS, FLOATING, LOW, TREE, Votes
+from treetraits.pipeline.classify import FLOATING, LOW, SMOOTH, TREE, Votes
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
@@ -132,11 +132,12 @@ class _Tree:
 # Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).
 UNCLAIMING = (LOW, FLOATING)
 # Verdicts of things that are not standing objects (posts, people, vehicles, walls):
-# trees, the understorey, crown fragments, and a tree's shape that one scan's evidence
-# spoke against (`smooth`, `not_green`: the track decides those over its scans, and a
-# dense crown the camera sees in some scans only flips between them and `tree`); the
-# tracker merges these with trees. Standing objects are told by their shape.
-NOT_STANDING = (TREE, *UNCLAIMING, *EVIDENCE_REASONS)
+# trees, the understorey, crown fragments, and a tree's shape whose surface alone spoke
+# against it in one scan (`smooth`: the track decides over its scans, and a dense crown
+# the camera sees in some scans only flips between `smooth` and `tree`); the tracker
+# merges these with trees. `not_green` stands: the camera saw it and it is no plant (a
+# person walking past a crown, merged into it, moved that tree 1.4 m on the twin).
+NOT_STANDING = (TREE, *UNCLAIMING, SMOOTH)
 
 
 class TreeMapper:
