@@ -55,6 +55,10 @@ class Shape:
     roughness: float  # m, along its rings (see `roughness`; NaN: too few returns)
     ndvi: float  # mean NDVI of its returns that have one (NaN: none)
     ndvi_share: float  # share of its returns with an NDVI
+    # Largest horizontal extent of its returns above the understorey (NaN: none there, or
+    # not measured): a post or a person standing in a weed clump is as thin there as
+    # anywhere, whatever the clump's width at its foot.
+    crown_width_m: float = math.nan
 
     @property
     def aspect(self) -> float:
@@ -335,8 +339,8 @@ def judge(shape: Shape, config: ClassifyConfig, evidence: Evidence | None = None
         return TALL
     if shape.base_m > config.max_base_m:
         return FLOATING
-    if shape.width_m < config.min_width_m:
-        return THIN
+    if shape.width_m < config.min_width_m or shape.crown_width_m < config.min_width_m:
+        return THIN  # (a NaN crown width, nothing above the understorey, compares False)
     if shape.aspect < config.min_aspect:
         return SLENDER
     if shape.width_m > config.max_width_m:

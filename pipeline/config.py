@@ -224,28 +224,23 @@ class ClassifyConfig:
     # foliage at trunk level (`pipeline.stems`, `detection.cluster_trunks`), not whether
     # a crown is vegetation (real canopy measured 0.011-0.037 m: the cues below decide).
     min_roughness_m: float = 0.04
-    # Vegetation evidence (`pipeline.vegetation`): each cue's pivot (where it says
-    # nothing), its scale (one unit of evidence) and its weight. The values on real
-    # returns are in docs/pipeline.md ("Vegetation evidence").
-    # Texture: off-midpoint distance of returns this far apart along a ring; leaves are
-    # 3-10 cm, so at 5 cm neighbours lie on different leaves.
+    # Vegetation evidence (`pipeline.vegetation`, docs/pipeline.md "Vegetation evidence"):
+    # texture, the off-midpoint distance of returns this far apart along a ring. Leaves
+    # are 3-10 cm, so at 5 cm neighbours lie on different leaves.
     texture_step_m: float = 0.05
-    # Real apple canopy 0.054-0.14 m at 1.5-9 m, real walls and furniture 0.004-0.033 m
-    # (one object 0.047 m): the geometric middle. One unit per doubling.
+    # Real apple canopy 0.055-0.112 m (10th-90th percentile), real walls, furniture and
+    # people 0.006-0.023 m: between them on a log scale. One unit of evidence per doubling.
     texture_pivot_m: float = 0.04
     texture_weight: float = 1.0
     # Planarity: patches of this size, flat within the VLP-16's range noise (1 sigma about
     # 1 cm; +-3 cm accuracy).
     planar_patch_m: float = 0.3
     planar_noise_m: float = 0.02
-    # Real canopy 0-0.26 of its patches flat, real indoor objects 0.09-1.0 (walls 0.6-1.0).
+    # Real canopy 0.11-0.60 of its patches flat (10th-90th percentile), real indoor objects
+    # 0.73-1.0. One unit of evidence per 0.3 of share; half a texture's weight.
     planar_pivot: float = 0.4
     planar_scale: float = 0.3
     planar_weight: float = 0.5
-    # NDVI, the mean over the returns the camera saw (in full from 100 of them,
-    # `vegetation.FULL_NDVI_RETURNS`): bare soil reads 0.1-0.2, wood, metal, paint and
-    # cloth below 0.3, citrus foliage 0.5-0.8. The most direct evidence of live leaves:
-    # twice a surface cue's weight.
     min_ndvi: float = 0.3
     ndvi_scale: float = 0.15
     ndvi_weight: float = 2.0

@@ -733,6 +733,8 @@ def _features(
         rings = all_rings[ends[k] - sizes[k] : ends[k]]
         shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]))
         mine = upper[ends[k] - sizes[k] : ends[k]]
+        if mine.any():
+            shape = replace(shape, crown_width_m=horizontal_extent(points[mine, :2]))
         crown_ndvi, crown_seen, seen_returns = _ndvi_of(None if values is None else values[mine])
         cues = replace(
             surface[k], ndvi=crown_ndvi, ndvi_share=crown_seen, ndvi_returns=seen_returns
