@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from treetraits.drivers.records import Scan
+from treetraits.sim import FOLIAGE_MODELS
 
 
 @dataclass(frozen=True)
@@ -83,6 +84,8 @@ MODELS: dict[str, Foliage] = {
         ),
     )
 }
+# The command line offers them from `treetraits.sim.FOLIAGE_MODELS`, which imports nothing.
+assert tuple(MODELS) == FOLIAGE_MODELS, (tuple(MODELS), FOLIAGE_MODELS)
 DEFAULT = "scattered"
 
 

@@ -324,8 +324,10 @@ def test_a_hedgerow_seen_through_from_the_lane_gives_no_crown_fragments(tmp_path
 
     Each tree is where its trunk is (`mapper.trunk_position`): 0.03-0.06 m measured,
     where the crown outline's centre was 0.11-0.36 m off (the touching crowns are cut
-    at their trunks, the outline of each is the piece the lane sees)."""
-    (case,) = [c for c in CASES if c.name == "field-hedgerow"]
+    at their trunks, the outline of each is the piece the lane sees). The crowns of the
+    case as it was measured: `scattered` (the case now grows `dense` ones, a hedge the
+    camera alone tells from a wall: docs/evaluation.md)."""
+    (case,) = [c.with_foliage("scattered") for c in CASES if c.name == "field-hedgerow"]
     survey = twin_survey(case.settings(7))
     report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
     truth = truth_rows(survey)

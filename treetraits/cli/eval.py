@@ -13,7 +13,7 @@ from treetraits.errors import ConfigError
 
 def register(commands: argparse._SubParsersAction) -> None:
     from treetraits.evaluation.methods import DEFAULT_METHODS, METHODS
-    from treetraits.sim.foliage import MODELS
+    from treetraits.sim import FOLIAGE_MODELS as MODELS
 
     ev = commands.add_parser(
         "eval",

@@ -287,7 +287,7 @@ def _antenna(text: str) -> tuple[float, float, float]:
 
 def _foliage(text: str) -> dict:
     """TreeSettings' foliage fields from `--foliage`: one model, or a mix to draw from."""
-    from treetraits.sim.foliage import MODELS
+    from treetraits.sim import FOLIAGE_MODELS as MODELS
 
     names = tuple(n.strip() for n in text.split(",") if n.strip())
     unknown = [n for n in names if n not in MODELS]
