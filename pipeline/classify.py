@@ -369,9 +369,9 @@ class Votes:
     `not_green`, which are tree-shaped objects whose scan spoke against vegetation) are
     at least `min_share` of the verdicts that judge what the object is and at least
     `min_share_all` of all of them; else it is the reason given most often. A tree's
-    shape is a tree when the track's evidence (each cue's mean over the scans that
-    measured it, `vegetation.EvidenceSum`) is not against vegetation: one scan's
-    evidence, or one cue's, decides nothing alone.
+    shape is a tree when the track's evidence speaks for vegetation (each surface cue's
+    mean over the scans that measured it, NDVI's over every return the camera saw:
+    `vegetation.EvidenceSum`): one scan's evidence, or one cue's, decides nothing alone.
 
     `low` and `floating` judge a piece, not the object: a crown cut by the crop box or
     hidden in part is a floating top or a low skirt in some scans, and on a path that
@@ -400,9 +400,8 @@ class Votes:
         if shaped >= min_share * judging and shaped >= min_share_all * total:
             evidence = self.evidence.evidence()
             return TREE if evidence.vegetation else not_vegetation(evidence)
+        # Not a tree's shape: some verdict other than the tree-shaped ones outweighs them.
         reasons = [(n, r) for r, n in self.counts.items() if r not in (TREE, *EVIDENCE_REASONS)]
-        if not reasons:
-            reasons = [(n, r) for r, n in self.counts.items() if r != TREE]
         return max(reasons, key=lambda item: (item[0], -REASONS.index(item[1])))[1]
 
 
