@@ -21,6 +21,7 @@ import numpy as np
 
 from treetraits.jit import kernel, kernel_layout, warm_up
 from treetraits.pipeline.config import ClassifyConfig
+from treetraits.pipeline.medians import median_of_groups
 from treetraits.pipeline.vegetation import Cues, Evidence, EvidenceSum
 
 TREE = "tree"
@@ -81,18 +82,21 @@ def shape_of(
     height = float(points[:, 2].max() - ground_z)
     base = float(points[:, 2].min() - ground_z)
     width = horizontal_extent(points[:, :2])
-    mean_ndvi, share = math.nan, 0.0
-    if ndvi is not None and len(ndvi):
-        known = np.isfinite(ndvi)
-        # known.mean() sums the flags as float64 (exactly) and divides by the count:
-        # the same correctly rounded quotient, without np.mean's machinery.
-        seen = int(np.count_nonzero(known))
-        share = seen / len(ndvi)
-        if seen:
-            mean_ndvi = float(ndvi[known].mean())
+    mean_ndvi, share, _ = ndvi_seen(ndvi)
     if rough is None:
         rough = roughness(points, ring, lidar_xy)
     return Shape(height, base, width, rough, mean_ndvi, share)
+
+
+def ndvi_seen(ndvi: np.ndarray | None) -> tuple[float, float, int]:
+    """The mean NDVI of the returns that have one (NaN: none), their share and count."""
+    if ndvi is None or len(ndvi) == 0:
+        return math.nan, 0.0, 0
+    known = np.isfinite(ndvi)
+    # known.mean() sums the flags as float64 (exactly) and divides by the count: the same
+    # correctly rounded quotient, without np.mean's machinery.
+    seen = int(np.count_nonzero(known))
+    return (float(ndvi[known].mean()) if seen else math.nan), seen / len(ndvi), seen
 
 
 def horizontal_extent(xy: np.ndarray) -> float:
@@ -162,12 +166,12 @@ def roughness_of_groups_numpy(
     owner = np.repeat(np.arange(groups), sizes)
     p, r, owner = points[order], ring[order], owner[order]
     same = (r[1:] == r[:-1]) & (owner[1:] == owner[:-1])
-    step = _median_of_groups(gap[same], owner[1:][same], groups)
+    step = median_of_groups(gap[same], owner[1:][same], groups)
     adjacent = same & (gap <= 2.5 * step[owner[1:]])  # NaN steps: no pair, never same
     triple = adjacent[:-1] & adjacent[1:]
     middle = (p[:-2] + p[2:]) / 2
     spread = np.linalg.norm(p[1:-1] - middle, axis=1)[triple]
-    found = _median_of_groups(spread, owner[1:-1][triple], groups)
+    found = median_of_groups(spread, owner[1:-1][triple], groups)
     enough = (np.bincount(owner[1:-1][triple], minlength=groups) >= 5) & (sizes >= 3)
     return np.where(enough, found, math.nan)
 
@@ -304,27 +308,6 @@ def _kernel_median(values: np.ndarray) -> float:
     half = n // 2
     part = np.partition(values, half)
     return part[half] if n % 2 else (part[:half].max() + part[half]) / 2
-
-
-def _median_of_groups(values: np.ndarray, owner: np.ndarray, groups: int) -> np.ndarray:
-    """`median` of each group's values (NaN for none); `owner` is non-decreasing, so each
-    group's values are one slice (a partition of each: sorting them all costs more)."""
-    bounds = np.searchsorted(owner, np.arange(groups + 1))
-    return np.array([median(values[bounds[k] : bounds[k + 1]]) for k in range(groups)])
-
-
-def median(values: np.ndarray) -> float:
-    """`float(np.median(values))` of a 1-D float array, by one partition: the same
-    middle values and the same mean of the two, NaN when any value is NaN, without
-    np.median's generic machinery, whose cost is paid a few times per cluster."""
-    n = len(values)
-    if n == 0:
-        return math.nan
-    half = n // 2
-    part = np.partition(values, (half, n - 1) if n % 2 else (half - 1, half, n - 1))
-    if np.isnan(part[-1]):  # NaN sorts last
-        return math.nan
-    return float(part[half]) if n % 2 else float((part[half - 1] + part[half]) / 2)
 
 
 def judge(shape: Shape, config: ClassifyConfig, evidence: Evidence | None = None) -> str:

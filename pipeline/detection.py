@@ -22,6 +22,7 @@ from treetraits.pipeline.classify import (
     Shape,
     horizontal_extent,
     judge,
+    ndvi_seen,
     roughness_of_groups,
     shape_of,
 )
@@ -735,7 +736,7 @@ def _features(
         mine = upper[ends[k] - sizes[k] : ends[k]]
         if mine.any():
             shape = replace(shape, crown_width_m=horizontal_extent(points[mine, :2]))
-        crown_ndvi, crown_seen, seen_returns = _ndvi_of(None if values is None else values[mine])
+        crown_ndvi, crown_seen, seen_returns = ndvi_seen(None if values is None else values[mine])
         cues = replace(
             surface[k], ndvi=crown_ndvi, ndvi_share=crown_seen, ndvi_returns=seen_returns
         )
@@ -758,15 +759,6 @@ def _features(
             )
         )
     return clusters
-
-
-def _ndvi_of(values: np.ndarray | None) -> tuple[float, float, int]:
-    """The mean NDVI of the returns that have one (NaN: none), their share and count."""
-    if values is None or len(values) == 0:
-        return math.nan, 0.0, 0
-    known = np.isfinite(values)
-    seen = int(np.count_nonzero(known))
-    return (float(values[known].mean()) if seen else math.nan), seen / len(values), seen
 
 
 class StageClock:

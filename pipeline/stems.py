@@ -28,9 +28,10 @@ from functools import cached_property
 import numpy as np
 
 from treetraits.jit import kernel, kernel_layout, warm_up
-from treetraits.pipeline.classify import median, roughness
+from treetraits.pipeline.classify import roughness
 from treetraits.pipeline.clustering import stable_order
 from treetraits.pipeline.config import ClassifyConfig, ClusterConfig
+from treetraits.pipeline.medians import median
 
 # The VLP-16's rings are 2 deg apart: on an upright surface at range r they land
 # r tan(2 deg) apart in height. A column is continuous while its next return up is no

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from treetraits.pipeline.config import ClassifyConfig
+from treetraits.pipeline.medians import median_of_groups
 
 # Triples for the texture: at least this many on a cluster, or it is not measured.
 _MIN_TRIPLES = 5
@@ -261,18 +262,14 @@ def measure_groups(
     planar, patches = planar_share_of_groups(
         points, ring, sizes, config.planar_patch_m, config.planar_noise_m
     )
-    bounds = np.concatenate([[0], np.cumsum(sizes)])
-    level = [
-        float(np.median(firing["intensity"][bounds[k] : bounds[k + 1]])) if sizes[k] else math.nan
-        for k in range(len(sizes))
-    ]
+    level = median_of_groups(firing["intensity"].astype(float), owner, len(sizes))
     return [
         Cues(
             texture_m=float(texture[k]),
             texture_triples=int(triples[k]),
             planar_share=float(planar[k]),
             planar_patches=int(patches[k]),
-            intensity=level[k],
+            intensity=float(level[k]),
         )
         for k in range(len(sizes))
     ]
@@ -306,16 +303,8 @@ def texture_of_groups(
     run = np.concatenate([[0], np.cumsum((r[1:] != r[:-1]) | (o[1:] != o[:-1]))])
     same = run[1:] == run[:-1]
     steps = np.diff(a)
-    step = np.full(groups, math.nan)
-    if same.any():
-        pair_owner = o[1:][same]
-        bounds = np.searchsorted(pair_owner, np.arange(groups + 1))
-        pair_steps = steps[same]
-        for k in range(groups):
-            part = pair_steps[bounds[k] : bounds[k + 1]]
-            part = part[part > 0]
-            if len(part):
-                step[k] = float(np.median(part))
+    moving = same & (steps > 0)  # a dual echo or a repeated azimuth is no firing step
+    step = median_of_groups(steps[moving], o[1:][moving], groups)
     reach = np.linalg.norm(p - lidar_xyz, axis=1)
     firing = step[o]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -331,13 +320,10 @@ def texture_of_groups(
     if not ok.any():
         return out, triples
     off = np.linalg.norm(p - (p[before] + p[after]) / 2, axis=1)[ok]
-    mine = o[ok]
-    bounds = np.searchsorted(mine, np.arange(groups + 1))
-    for k in range(groups):
-        part = off[bounds[k] : bounds[k + 1]]
-        if len(part) >= _MIN_TRIPLES:
-            out[k], triples[k] = float(np.median(part)), len(part)
-    return out, triples
+    counted = np.bincount(o[ok], minlength=groups)
+    enough = counted >= _MIN_TRIPLES
+    found = median_of_groups(off, o[ok], groups)
+    return np.where(enough, found, math.nan), np.where(enough, counted, 0)
 
 
 def planar_share_of_groups(

@@ -167,3 +167,11 @@ def test_sim_foliage_option_names_one_model_or_a_mix():
     assert _foliage("dense, sparse") == {"foliage_mix": ("dense", "sparse")}
     with pytest.raises(ConfigError, match="unknown 'hedge'; choose from scattered"):
         _foliage("dense,hedge")
+
+
+def test_the_command_lines_model_names_are_the_models():
+    """`--foliage` offers `treetraits.sim.FOLIAGE_MODELS` (no import of the twin to build
+    the parser): the very models sim/foliage.py grows, in its order."""
+    from treetraits.sim import FOLIAGE_MODELS
+
+    assert tuple(MODELS) == FOLIAGE_MODELS
