@@ -433,7 +433,8 @@ def detect(
         config.classify,
         top_seen,
         trunks,
-        points[["azimuth", "intensity", "return_type"]][source],
+        points[["azimuth", "intensity", "return_type"]],  # a view: nothing copied
+        source,
         height >= config.cluster.bridge_min_height_m,
     )
     counts["clustered_voxels"] = sum(c.num_points for c in clusters)
@@ -688,10 +689,12 @@ def _features(
     top_seen: Callable[[np.ndarray], bool],
     trunks: dict[int, np.ndarray],
     firing: np.ndarray,
+    source: np.ndarray,
     crown_part: np.ndarray,
 ) -> list[Cluster]:
-    """Each kept cluster's shape, cues and verdict. `firing`: each return's sensor
-    azimuth, intensity and return type (`vegetation.measure_groups`). `crown_part`: the
+    """Each kept cluster's shape, cues and verdict. `firing`: the scan's returns' sensor
+    azimuth, intensity and return type (`vegetation.measure_groups`), `source` each
+    kept return's index among them (only the clusters' are gathered). `crown_part`: the
     returns above the understorey, on which the cues are measured: weeds at a post's
     foot are vegetation, and a post standing in them is no crown (a tree's foliage is
     its crown's, above where the understorey ends)."""
@@ -713,7 +716,7 @@ def _features(
     surface = measure_groups(
         all_points[upper],
         all_rings[upper],
-        firing[every][upper],
+        firing[source[every[upper]]],
         lidar_xyz,
         np.bincount(owner[upper], minlength=len(kept)),
         classify,
