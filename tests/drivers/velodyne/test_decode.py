@@ -7,6 +7,9 @@ that packet alone.
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -15,7 +18,6 @@ import pytest
 from tests.helpers.captures import VLP16_DIR
 from treetraits.drivers.velodyne import models as m
 from treetraits.drivers.velodyne import packet as p
-from treetraits.drivers.velodyne.batcher import ScanBatcher
 from treetraits.drivers.velodyne.sources import open_source
 
 CAPTURES = ["einride_vlp16_strongest_1000pkts.bin", "nebula_vlp16_dual_10hz.pcap"]
@@ -71,17 +73,43 @@ def test_duplicates_are_counted_as_flagged(name):
     assert (duplicates > 0) == (packets["return_mode"][0] == m.RETURN_DUAL)
 
 
+_COMPILE_COUNT = """
+import json, sys
+from treetraits.drivers.velodyne import packet as p
+from treetraits.drivers.velodyne.batcher import ScanBatcher
+from treetraits.drivers.velodyne.sources import open_source
+
+def counts():
+    return [len(p._count_returns.signatures), len(p._fill_points.signatures)]
+
+p.compile_kernels()
+compiled = counts()
+decoded = []
+for path in sys.argv[1:]:
+    source = open_source(path)
+    batcher = ScanBatcher()
+    scans = [batcher.push(packet.payload, packet.t_host) for packet in source if packet.is_data]
+    source.close()
+    decoded.append(any(scan is not None and len(scan.points) for scan in scans))
+print(json.dumps({"compiled": compiled, "after": counts(), "decoded": decoded}))
+"""
+
+
 def test_compile_kernels_compiles_what_real_scans_use():
     """The service compiles the kernels before READY (`compile_kernels`); decoding real
     captures of both return modes afterwards must not need another compilation (numba
-    compiles anew for every new combination of argument types and layouts)."""
-    p.compile_kernels()
-    compiled = (len(p._count_returns.signatures), len(p._fill_points.signatures))
-    for name in CAPTURES:
-        source = open_source(VLP16_DIR / name)
-        batcher = ScanBatcher()
-        scans = [batcher.push(packet.payload, packet.t_host) for packet in source if packet.is_data]
-        source.close()
-        assert any(scan is not None and len(scan.points) for scan in scans)
-    assert (len(p._count_returns.signatures), len(p._fill_points.signatures)) == compiled
-    assert compiled == (1, 1)
+    compiles anew for every new combination of argument types and layouts). In a fresh
+    interpreter, as the service starts: in the test process another module may already
+    have compiled a signature of its own (seen on two pytest-xdist workers)."""
+    paths = [str(VLP16_DIR / name) for name in CAPTURES]
+    run = subprocess.run(
+        [sys.executable, "-c", _COMPILE_COUNT, *paths],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=True,
+    )
+    facts = json.loads(run.stdout.strip().splitlines()[-1])
+    assert all(facts["decoded"])
+    assert facts["after"] == facts["compiled"]
+    assert facts["compiled"] == [1, 1]
