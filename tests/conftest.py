@@ -10,9 +10,9 @@ import pytest
 from tests.helpers.captures import VLP16_CAPTURES
 
 # The modules whose tests drive the twin end to end, the longest first (measured with
-# --durations). `make test TEST_WORKERS=auto` keeps a module on one worker (--dist
-# loadfile) and hands the modules out in this order, so that the workers end together on
-# short modules instead of one waiting for the other's last replay.
+# --durations). `make test` keeps a module on one worker (--dist loadfile) and hands the
+# modules out in this order, so that the workers end together on short modules instead of
+# one waiting for the other's last replay.
 LONGEST_FIRST = (
     "tests/service/test_replay.py",
     "tests/sim/test_run.py",

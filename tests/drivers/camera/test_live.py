@@ -282,6 +282,7 @@ def test_controls_the_device_lacks_are_reported_unsupported_and_values_kept():
     assert device.controls[cv2.CAP_PROP_AUTO_EXPOSURE] == 3
 
 
+@pytest.mark.realtime
 def test_frames_arrive_on_the_thread_with_rising_times_and_nothing_is_decoded(decode_calls):
     device = FakeDevice(latency_ms=40.0)
     with UvcCamera("/dev/video0", settings(), capture_factory=device.open) as camera:
@@ -329,6 +330,7 @@ def test_the_ring_keeps_the_newest_frames_and_counts_the_overwritten(decode_call
     assert decode_calls == []
 
 
+@pytest.mark.realtime
 def test_unplug_reopens_with_backoff_without_spinning_and_recovers():
     device = FakeDevice()
     camera = UvcCamera("/dev/video0", settings(), capture_factory=device.open)
@@ -421,6 +423,7 @@ def test_capture_time_from_the_kernel_buffer_stamp():
     assert capture_time_ns((clocks.monotonic_ns + 5 * MS) / MS, clocks) is None  # future
 
 
+@pytest.mark.realtime
 def test_camera_info_and_grab_on_a_live_camera(monkeypatch, tmp_path, capsys):
     """`treetraits camera info|grab` end to end, cv2.VideoCapture replaced by the fake."""
     import json

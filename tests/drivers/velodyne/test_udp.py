@@ -183,6 +183,7 @@ def test_malformed_datagrams_are_counted_never_raised(veloview):
         source.close()
 
 
+@pytest.mark.realtime
 def test_read_times_out_on_a_quiet_socket():
     source = UdpSource(host="127.0.0.1", port=0, telemetry_port=None)
     try:

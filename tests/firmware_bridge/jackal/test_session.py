@@ -434,6 +434,7 @@ def motion(drives, start: float, end: float):
     return [d for d in drives if start <= d[0] <= end and (d[2] != 0.0 or d[3] != 0.0)]
 
 
+@pytest.mark.realtime
 def test_teleop_relay_drives_only_with_the_deadman_and_stops_in_time(pty_pair, tmp_path):
     joystick = FakeJoystick(tmp_path / "js0")
     config = TeleopConfig(
