@@ -321,6 +321,14 @@ class TrackingConfig:
     # anew (a serpentine's return lane along rows longer than this). 0 keeps every tree.
     # At least the view's reach (the crop box's corner plus view_margin_m) plus 3 m.
     retire_m: float = 50.0
+    # A track takes its side in the Voronoi cut (`mapper._Centres`) once seen in this many
+    # scans, as the outputs report an object (`output.min_observations`): a post, a person
+    # or a wall in view is seen scan after scan, while a stray cluster, or a tree's trunk
+    # cut off its crown in one scan and seen alone, is seen once, and its track, never
+    # seen again, would take the returns nearer to it from every later cluster there (the
+    # twin's irregular orchard: a trunk seen alone once held 0.02 m of its tree's width).
+    # 1: every track claims from its first scan.
+    claim_min_scans: int = 3
 
     def __post_init__(self) -> None:
         _validate_tracking(self)
@@ -488,6 +496,7 @@ def _validate_tracking(t: TrackingConfig) -> None:
     _need(t.merge_distance_m >= 0, "tracking.merge_distance_m must be >= 0 (0: off)")
     _need(t.max_association_m >= 0, "tracking.max_association_m must be >= 0 (0: off)")
     _need(t.retire_m >= 0, "tracking.retire_m must be >= 0 (0: keep every tree)")
+    _need(t.claim_min_scans >= 1, "tracking.claim_min_scans must be >= 1")
 
 
 def _validate_traits(r: TraitsConfig) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import Frame, Scan, take_points
 from treetraits.jit import kernel, kernel_layout, warm_up
-from treetraits.pipeline.classify import FLOATING, LOW, SMOOTH, TREE, Votes
+from treetraits.pipeline.classify import FLOATING, LOW, SMOOTH, THIN, TREE, Votes
 from treetraits.pipeline.config import MapperConfig, TraitsConfig
 from treetraits.pipeline.detection import Cluster, Detection, GroundModel, StageClock, detect
 from treetraits.pipeline.localization.attitude import rotation_zyx
@@ -237,11 +237,8 @@ class TreeMapper:
         centres = _Centres(
             self.tracker.tracks,
             self._traits_from_map,
-            {
-                tree_id
-                for tree_id, tree in self._trees.items()
-                if self._kind(tree) not in UNCLAIMING
-            },
+            self._claiming(),
+            {tree_id for tree_id, tree in self._trees.items() if self._kind(tree) == THIN},
         )
         # World points for the outline: not while turning fast; and for the paper's traits
         # (which use the outline for the centre only) not without a pose or a motion, where
@@ -493,7 +490,7 @@ class TreeMapper:
             ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
             if cluster.trunk is not None:
                 trunk = traits_from_base[:2, :3] @ cluster.trunk + traits_from_base[:2, 3]
-                if centres.nearest_is(trunk[None], tree_id)[0]:  # not a neighbour's
+                if centres.trunk_is(trunk, tree_id):  # not a neighbour's
                     tree.add_trunks(trunk)
         tree.traits.observe(points, ring, cluster.ground_z, world_points, ground_world, pose_sigma)
         # The cluster's top in view counts for this tree if that top is its own.
@@ -554,6 +551,20 @@ class TreeMapper:
             placed = None  # the centres changed
             merged.append((keep, drop))
         return merged
+
+    def _claiming(self) -> set[int]:
+        """The tracks that take their side in the Voronoi cut: seen in
+        `tracking.claim_min_scans` scans, and not the understorey's or a fragment's."""
+        seen = {
+            track.tree_id
+            for track in self.tracker.tracks
+            if track.observations >= self.config.tracking.claim_min_scans
+        }
+        return {
+            tree_id
+            for tree_id, tree in self._trees.items()
+            if tree_id in seen and self._kind(tree) not in UNCLAIMING
+        }
 
     def _mark_standing(self, tree_ids: set[int]) -> None:
         """Each touched track stands (a post, a person...) as its votes now say: a tree's
@@ -697,7 +708,7 @@ class _Centres:
     """The tracked trees' x-y centres in the traits frame (their Kalman states), as
     arrays: the Voronoi cut compares a cluster with its neighbours at array speed."""
 
-    def __init__(self, tracks, traits_from_map: np.ndarray, claiming: set[int]):
+    def __init__(self, tracks, traits_from_map: np.ndarray, claiming: set[int], thin: set[int]):
         self.ids = np.array([tr.tree_id for tr in tracks], dtype=np.int64)
         self.rows: dict[int, int] = {}  # each id's first row
         for row, tree_id in enumerate(self.ids.tolist()):
@@ -706,6 +717,7 @@ class _Centres:
         # understorey's (a weed, a drip line's span under a crown) and a crown fragment's
         # are no claim on the foliage above or around them.
         self.claims = np.array([tr.tree_id in claiming for tr in tracks], dtype=bool)
+        self.thin = np.array([tr.tree_id in thin for tr in tracks], dtype=bool)
         states = np.array([tr.state[:3] for tr in tracks]).reshape(-1, 3)
         # Row by row as `R @ p + t` for each tree, so the values are those of one at a time.
         self.xy = np.array(
@@ -716,13 +728,26 @@ class _Centres:
         """Points nearer (x-y) to this tree's centre than to any other claiming object's:
         a cluster that took in a piece of a neighbour's crown, a post or a person gives it
         back (a Voronoi cut), so it widens neither this tree's traits nor its outline."""
+        return self._nearest_is(xy, tree_id, self.claims)
+
+    def trunk_is(self, xy: np.ndarray, tree_id: int) -> bool:
+        """A trunk sighting (x-y) is this tree's, not a neighbour's: nearer to this tree's
+        centre than to any other claiming object's but a thin one's. A thin object where a
+        tree's trunk is seen is that trunk seen alone, apart from its crown (a crown
+        leaning or lobed away from its trunk: its centre is off the trunk, while the
+        trunk-alone object's centre is on it, and it would take every later sighting);
+        a post beside a trunk, taken for it now and then, is outvoted in
+        `trunk_position`."""
+        return bool(self._nearest_is(xy[None], tree_id, self.claims & ~self.thin)[0])
+
+    def _nearest_is(self, xy: np.ndarray, tree_id: int, claims: np.ndarray) -> np.ndarray:
         own = self.xy[self.rows[tree_id]]
         # The points' squared distances to this centre and its reach in one compiled pass;
         # the centres (a few) by NumPy.
         points = kernel_layout(xy)
         own_d2, reach = _own_distances(points, own[0], own[1])
         gap = self.xy - own
-        near = self.claims & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
+        near = claims & (self.ids != tree_id) & (np.hypot(gap[:, 0], gap[:, 1]) < 2 * reach)
         if not near.any():
             return np.ones(len(xy), dtype=bool)
         return _nearer(points, own_d2, kernel_layout(self.xy[near]))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,8 +16,8 @@ import pytest
 from tests.helpers.twin import drive, grid_drive, mapped, match
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import POINT_DTYPE
-from treetraits.pipeline.config import MapperConfig, TraitsConfig
-from treetraits.pipeline.mapper import TreeMapper, trunk_position
+from treetraits.pipeline.config import MapperConfig, TrackingConfig, TraitsConfig
+from treetraits.pipeline.mapper import TreeMapper, _Centres, trunk_position
 from treetraits.pipeline.tracking import Motion
 from treetraits.sim.camera import FOLIAGE
 from treetraits.sim.orchard import (
@@ -319,3 +320,39 @@ def test_a_tree_stands_where_most_of_its_trunk_sightings_agree():
     # Hundreds of sightings (a tree seen for minutes): the same place.
     many = seen(trunk, 600)
     assert np.hypot(*(trunk_position(many, config, 1000, crown, 2.8) - trunk)) < 0.01
+
+
+def test_a_thin_object_on_a_trunk_does_not_take_the_trunk_from_its_tree():
+    """The twin's irregular orchard (seed 2): a crown lobed away from its trunk has its
+    centre 0.6 m off the trunk, and the trunk seen once apart from the crown made a thin
+    object on it. In the cut (`_Centres`) that object takes the crown's returns nearer to
+    it, but not the trunk sightings: they stay the tree's (the tree stood 0.63 m off its
+    trunk when the thin object took all 181). A neighbour tree's trunk stays refused."""
+    tracks = [
+        SimpleNamespace(tree_id=1, state=np.array([14.4, 2.4, 1.5])),  # the lobed crown
+        SimpleNamespace(tree_id=2, state=np.array([9.9, 2.4, 1.5])),  # its neighbour
+        SimpleNamespace(tree_id=3, state=np.array([15.0, 2.5, 0.5])),  # the trunk alone
+    ]
+    centres = _Centres(tracks, np.eye(4), claiming={1, 2, 3}, thin={3})
+    trunk = np.array([15.04, 2.50])
+    assert centres.trunk_is(trunk, 1)
+    assert not centres.nearest_is(trunk[None], 1)[0]  # its returns: the thin object's side
+    assert not centres.trunk_is(np.array([10.0, 2.45]), 1)  # the neighbour's trunk
+    # Not thin (a person standing there): the cut holds for the trunk too.
+    person = _Centres(tracks, np.eye(4), claiming={1, 2, 3}, thin=set())
+    assert not person.trunk_is(trunk, 1)
+
+
+def test_an_object_seen_in_fewer_scans_than_claim_min_scans_claims_nothing():
+    """A track takes its side in the cut once seen in `tracking.claim_min_scans` scans:
+    after one scan of the grid, nothing claims; after three, the trees do."""
+    data = grid_drive()
+    for claim, scans, claiming in ((3, 1, False), (3, 3, True), (1, 1, True)):
+        config = MapperConfig(tracking=TrackingConfig(claim_min_scans=claim))
+        mapper = TreeMapper(config, data.calibration)
+        for scan, pose in zip(data.scans[:scans], data.poses[:scans], strict=True):
+            mapper.process(scan, None, pose)
+        trees = {t.tree_id for t in mapper.trees() if t.kind == "tree"}
+        assert trees, (claim, scans)
+        assert (trees <= mapper._claiming()) == claiming, (claim, scans)
+        assert bool(trees & mapper._claiming()) == claiming, (claim, scans)

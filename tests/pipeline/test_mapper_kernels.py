@@ -1,5 +1,5 @@
 """The Voronoi cut's compiled steps (`mapper._own_distances`, `mapper._nearer`) give what
-the NumPy formulation they replaced gave, on the clusters and trunks the mapper cuts on
+the NumPy formulation they replaced gave, on the clusters the mapper cuts on
 the twin drive past the 2 x 3 grid, with the neighbours it had and with more, nearer
 ones; so do the trunk's crowded places (`mapper._cell_means`) on the sightings the
 mapper gathers there; and they compile nothing beyond the warm-up."""
