@@ -89,8 +89,8 @@ def report_damage(
     path: object, facts: dict, allow_damaged: bool, rest: str = "the outputs are from the rest"
 ) -> int:
     """The DATA LOSS line on stderr when `facts` say data was lost; the exit status: 3
-    then, unless `allow_damaged`, else 0."""
-    if not facts["data_loss"]:
+    then, unless `allow_damaged`, else 0. Facts without the account say no loss."""
+    if not facts.get("data_loss"):
         return 0
     print(f"treetraits: warning: {path}: DATA LOSS: {format_loss(facts, rest)}", file=sys.stderr)
     return 0 if allow_damaged else EXIT_DATA_LOSS
