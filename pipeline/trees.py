@@ -17,19 +17,10 @@ import math
 import typing
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from operator import attrgetter
 from typing import Any
 
-
-def iso_utc(ns: int | None) -> str:
-    """ISO 8601 UTC with milliseconds, e.g. 2026-11-22T10:15:30.123Z ("" for None)."""
-    if ns is None:
-        return ""
-    seconds, rest = divmod(int(ns), 1_000_000_000)
-    moment = datetime.fromtimestamp(seconds, tz=timezone.utc)
-    return f"{moment:%Y-%m-%dT%H:%M:%S}.{rest // 1_000_000:03d}Z"
-
+from treetraits.files import iso_utc  # here too: the outputs' times are written with it
 
 # ---- formats: one kind of value in each output ------------------------------------------
 

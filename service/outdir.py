@@ -17,6 +17,9 @@ takes the lock only): docs/cli.md, "Output directories".
   replacing removes every owned file of the earlier run that the new run did not write (an
   export's stale .pcd files). Files the command does not own (the input recording beside
   the outputs, notes) are never touched, and an input that is one of the outputs is refused.
+
+A command whose output is one file (`report`, `export foxglove`, `import`, `inspect --png`...)
+checks it with `treetraits.files.check_output_file` before any work.
 """
 
 from __future__ import annotations
@@ -29,18 +32,13 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 
-from treetraits.errors import (
-    FileAccessError,
-    OutputBusyError,
-    OutputExistsError,
-    TreetraitsError,
-)
-from treetraits.files import fsync_directory
+from treetraits.errors import FileAccessError, OutputBusyError, OutputExistsError
+from treetraits.files import OutputPathError, fsync_directory
 
 LOCK_NAME = ".treetraits.lock"
 
 
-class OutputDirError(TreetraitsError):
+class OutputDirError(OutputPathError):
     """An output that cannot be used as given (a file in place of the directory, an input
     among the outputs); what the system refuses is a `FileAccessError` (exit 6)."""
 

@@ -18,8 +18,10 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from treetraits.damage import integrity_facts
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration, load_calibration
+from treetraits.drivers.rosbag.detect import refuse_ros_bag
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
 from treetraits.pipeline.fieldmap import load_field_map, parse_geojson
@@ -70,6 +72,7 @@ def open_input(
 ) -> Input:
     """A recording, or a pcap/pcapng/raw LiDAR capture with an optional NMEA text log
     (`nmea_log_messages` places its sentences on the capture's clock)."""
+    refuse_ros_bag(path, "a recording or a LiDAR capture")
     if not Path(path).is_file():
         raise SourceError(f"{path}: no such file (expected a recording or a LiDAR capture)")
     with open(path, "rb") as f:
@@ -126,22 +129,6 @@ def open_input(
         source.close,
         lambda: integrity_facts(truncated=source.stats.truncated),
     )
-
-
-def integrity_facts(recording: rec.RecordingReader | None = None, truncated: bool = False) -> dict:
-    """The summary's account of what could not be read: `damaged_chunks` (skipped, reading
-    went on after them), `truncated` (the file is cut), `lost` (the recorded times the lost
-    messages lie within, ISO UTC; "" where the file does not tell) and `data_loss`."""
-    if recording is None:
-        return {"damaged_chunks": 0, "truncated": truncated, "lost": [], "data_loss": truncated}
-    return {
-        "damaged_chunks": recording.damaged_chunks,
-        "truncated": recording.truncated,
-        "lost": [
-            {"from": iso_utc(d.lost_from_ns), "to": iso_utc(d.lost_to_ns)} for d in recording.damage
-        ],
-        "data_loss": recording.lost_data,
-    }
 
 
 def _packet_message(packet) -> tuple[str, bytes, int, int]:

@@ -46,6 +46,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from treetraits.damage import integrity_facts
 from treetraits.drivers import recording as rec
 from treetraits.errors import ParseError, SourceError
 from treetraits.firmware_bridge.jackal import rosserial as rs
@@ -412,6 +413,7 @@ class RecordingPlayer:
             elif m.topic == rec.WHEELS_BRIDGE and wheels_pty:
                 bridge.append((m.log_time, m.data))
         self.truncated = reader.truncated or reader.lost_data  # cut, or a chunk skipped
+        self.integrity = integrity_facts(reader)  # what was lost, for the command's line
         # A recording's messages are in log_time order per chunk, not across: sort stably.
         for items in (lidar, gnss, jackal, bridge):
             items.sort(key=lambda item: item[0])

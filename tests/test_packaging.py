@@ -53,7 +53,14 @@ ALLOWED = {
         "treetraits.drivers",
     },
 }
-SHARED = {"treetraits", "treetraits.errors", "treetraits.jit", "treetraits.files"}
+SHARED = {
+    "treetraits",
+    "treetraits.errors",
+    "treetraits.jit",
+    "treetraits.files",
+    "treetraits.readonly",  # stores read by a command that only reads them
+    "treetraits.damage",  # damage reported by every reader of a recording
+}
 
 
 def package_dirs() -> dict[str, Path]:

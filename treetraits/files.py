@@ -15,6 +15,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Literal, TextIO, overload
 
+from treetraits.errors import OutputExistsError, TreetraitsError
+
 if TYPE_CHECKING:
     from datetime import datetime
 
@@ -94,6 +96,42 @@ def _create_beside(target: Path) -> tuple[Path, int]:
             return temp, os.open(temp, flags, 0o666)
         except FileExistsError:  # another writer's temp file of the same name: draw again
             continue
+
+
+class OutputPathError(TreetraitsError):
+    """An output path that cannot be used as given: a directory where a file is wanted (or
+    a file where a directory is: `service.outdir.OutputDirError`); exit 2."""
+
+
+def check_output_file(
+    path: str | os.PathLike, option: str = "--out", *, force: bool | None = None
+) -> None:
+    """A command's one-file output (a page, a view, a recording, a picture), checked before
+    any work (docs/cli.md): a directory there is refused with or without --force (exit 2;
+    it would fail only once the work is done); an existing file without `force` is an
+    earlier output (exit 4). `force=None`: the command has no --force and refuses an
+    existing file its own way (`record`: a recording is never overwritten)."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputPathError(
+            f"{path}: is a directory; {option} takes the file to write (e.g. {path / 'NAME'})"
+        )
+    if force is False and path.exists():
+        raise OutputExistsError(
+            f"{path}: exists; give --force to replace it, or choose another {option}"
+        )
+
+
+def iso_utc(ns: int | None) -> str:
+    """ISO 8601 UTC with milliseconds, e.g. 2026-11-22T10:15:30.123Z ("" for None): how
+    every output and message writes a time of ns since the Unix epoch."""
+    from datetime import datetime, timezone  # imported when used: the CLI starts without it
+
+    if ns is None:
+        return ""
+    seconds, rest = divmod(int(ns), 1_000_000_000)
+    moment = datetime.fromtimestamp(seconds, tz=timezone.utc)
+    return f"{moment:%Y-%m-%dT%H:%M:%S}.{rest // 1_000_000:03d}Z"
 
 
 def utc_stamp(moment: datetime | None = None) -> str:

@@ -33,6 +33,7 @@ from urllib.parse import parse_qs, urlsplit
 from treetraits.drivers import DEFAULT_BAUD
 from treetraits.drivers.gnss.sentences import Sentence
 from treetraits.drivers.gnss.stream import SentenceSplitter
+from treetraits.drivers.rosbag.detect import refuse_ros_bag
 from treetraits.errors import SourceError
 
 _READ_TIMEOUT_S = 0.1  # longest a serial read blocks, so close() and deadlines are seen
@@ -132,6 +133,11 @@ class RecordingSource(_SplittingSource):
             yield from self.splitter.flush()
         # A chunk skipped as damaged is reported as a cut is: data was lost.
         self.stats.recording_truncated = self._recording.truncated or self._recording.lost_data
+
+    @property
+    def recording(self):
+        """The recording's reader: what of it could not be read (treetraits/damage.py)."""
+        return self._recording
 
     def close(self) -> None:
         self._recording.close()
@@ -316,6 +322,7 @@ def open_gnss_source(
     if text.startswith("serial://"):
         return _serial_source(text, baud, **options)
     path = Path(text)
+    refuse_ros_bag(path, "an NMEA log or a recording")
     try:
         mode = path.stat().st_mode
     except OSError as exc:

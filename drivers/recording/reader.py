@@ -44,6 +44,7 @@ from treetraits.drivers.recording.format import (
     RecordedMessage,
     RecordingMetadata,
 )
+from treetraits.drivers.rosbag.detect import refuse_ros_bag
 from treetraits.errors import SourceError
 
 
@@ -258,6 +259,7 @@ class RecordingReader:
             raise
 
     def _open(self) -> IO[bytes]:
+        refuse_ros_bag(self.path, "a treetraits recording (.mcap)")
         try:
             return open(self.path, "rb")
         except OSError as error:

@@ -51,6 +51,7 @@ from treetraits.drivers.rosbag.topics import (
 from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE
 from treetraits.drivers.velodyne.packet import resolve_hour
 from treetraits.errors import ConfigError, SourceError
+from treetraits.files import check_output_file
 
 # A NavSatFix with STATUS_GBAS_FIX (ground-based augmentation: RTK) is RTK fixed when its
 # horizontal sigma is at most this, else RTK float (NavSatFix cannot say which).
@@ -139,7 +140,7 @@ class ImportOptions:
     gnss_quality: int | None = None
     calibration: Mapping[str, Any] | None = None
     jpeg_quality: int = JPEG_QUALITY
-    overwrite: bool = False
+    force: bool = False  # replace an existing output
 
 
 @dataclass(frozen=True, slots=True)
@@ -514,12 +515,12 @@ def import_bags(
 
     `progress(done, total)` is called after each bag message read (of those imported).
     Raises SourceError for a missing or unreadable bag (nothing is left at `output`),
-    ConfigError for an output that exists (unless `options.overwrite`).
+    `OutputExistsError` (exit 4) for an output that exists (unless `options.force`), and
+    `OutputPathError` (exit 2) for a directory there.
     """
     if not bags:
         raise ConfigError("no bag given")
-    if output.exists() and not options.overwrite:
-        raise ConfigError(f"{output}: exists; choose another --out or pass --overwrite")
+    check_output_file(output, force=options.force)
     errors = _bag_errors()
     store = default_typestore()
     readers: list[Any] = []
@@ -589,7 +590,7 @@ def _convert(
     with rec.RecordingWriter(
         output,
         calibration=options.calibration,
-        overwrite=options.overwrite,
+        overwrite=options.force,
         format_version=rec.FORMAT_VERSION_MOTION if motion else rec.FORMAT_VERSION,
     ) as writer:
         report.format_version = writer.format_version

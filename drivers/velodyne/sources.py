@@ -28,6 +28,7 @@ from urllib.parse import parse_qs, urlsplit
 import dpkt
 
 from treetraits.drivers import DATA_PORT, TELEMETRY_PORT
+from treetraits.drivers.rosbag.detect import refuse_ros_bag
 from treetraits.drivers.velodyne.models import DATA_PACKET_SIZE, HOUR_NS, POSITION_PACKET_SIZE
 from treetraits.errors import SourceError
 
@@ -271,6 +272,11 @@ class McapSource:
         # A chunk skipped as damaged is reported as a cut is: data was lost.
         self.stats.truncated = self._recording.truncated or self._recording.lost_data
 
+    @property
+    def recording(self):
+        """The recording's reader: what of it could not be read (treetraits/damage.py)."""
+        return self._recording
+
     def close(self) -> None:
         self._recording.close()
 
@@ -465,6 +471,7 @@ def open_source(uri: str | os.PathLike) -> PacketSource:
     if text.startswith("udp://"):
         return _udp_source(text)
     path = Path(text)
+    refuse_ros_bag(path, "a capture or a recording")
     if not path.is_file():
         raise SourceError(f"{text}: no such file (expected a pcap, pcapng, mcap or raw capture)")
     with open(path, "rb") as f:

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from treetraits.errors import EXIT_DATA_LOSS, ConfigError
+from treetraits.files import check_output_file
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -113,8 +114,7 @@ def run(args: argparse.Namespace) -> int:
     gate = DEFAULT_LINK_GATE_M if args.link_gate is None else args.link_gate
     if not gate > 0:
         raise ConfigError(f"--link-gate must be a positive number of metres, got {gate}")
-    if args.season.is_dir():
-        raise ConfigError(f"--season {args.season}: is a directory; give a .sqlite file")
+    check_output_file(args.season, "--season")  # written in place: it may exist
     config = with_method(load_config(args.config), args.method, args.traits)
     key = b.config_key(config)
     runs_dir = args.runs or args.season.with_name(args.season.name + ".runs")

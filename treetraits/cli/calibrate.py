@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from treetraits.errors import CalibrationError, ConfigError, OutputExistsError, SourceError
+from treetraits.damage import add_allow_damaged, report_damage
+from treetraits.drivers.rosbag.detect import refuse_ros_bag
+from treetraits.errors import CalibrationError, ConfigError, SourceError
+from treetraits.files import check_output_file
 
 if TYPE_CHECKING:
     import numpy as np
@@ -119,6 +121,7 @@ def _register_classify(sub: argparse._SubParsersAction) -> None:
         "--force", action="store_true", help="replace FILE when it exists (without it: exit 4)"
     )
     classify.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    add_allow_damaged(classify, "proposes the section")
     classify.set_defaults(run=run_classify)
 
 
@@ -177,6 +180,9 @@ def run_reflectance(args: argparse.Namespace) -> int:
 
     from treetraits.pipeline.ndvi import find_target_v2, fit_reflectance, sample_panels
 
+    for path, option in ((args.write, "--write"), (args.show, "--show")):
+        if path is not None:
+            check_output_file(path, option)  # --write's file is updated: it may exist
     if not args.image.is_file():
         raise SourceError(f"{args.image}: no such file (expected a JPEG or PNG of the target)")
     image = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
@@ -421,20 +427,16 @@ def _write_classify(path: Path, text: str) -> None:
 def run_classify(args: argparse.Namespace) -> int:
     from treetraits.pipeline.vegetation_fit import propose_all, section
 
-    if args.out is not None and args.out.exists() and not args.force:
-        raise OutputExistsError(
-            f"{args.out}: exists; give --force to replace it, or choose another file"
-        )
+    if args.out is not None:
+        check_output_file(args.out, force=args.force)
+    refuse_ros_bag(args.recording, "a recording")  # a bag: the import to run first
     for path, what in ((args.recording, "recording"), (args.field_map, "field map")):
         if not path.is_file():
             raise SourceError(f"{path}: no such {what} file")
     data = collect_cues(args.recording, args.field_map, args.calibration, args.config)
-    if data["summary"].get("data_loss"):
-        print(
-            f"treetraits: warning: {args.recording}: damaged or cut short: the cues are "
-            "those of the part that could be read",
-            file=sys.stderr,
-        )
+    status = report_damage(
+        args.recording, data["summary"], args.allow_damaged, "the cues are of the rest"
+    )
     if not data["trees"]:
         fixes = data["summary"].get("fixes")
         raise ConfigError(
@@ -492,7 +494,7 @@ def run_classify(args: argparse.Namespace) -> int:
                 indent=1,
             )
         )
-        return 0
+        return status
     print(
         f"{args.recording}: {counts} "
         f"({data['found_matched']} of {data['field_map_trees']} field-map trees found as trees)"
@@ -515,7 +517,7 @@ def run_classify(args: argparse.Namespace) -> int:
         print(f"{key} = {value!r}")
     if args.out is not None:
         print(f"wrote the [detection.classify] section to {args.out}")
-    return 0
+    return status
 
 
 def _dist(d) -> dict[str, Any]:

@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from treetraits.damage import add_allow_damaged, report_damage
+
 
 def register(commands: argparse._SubParsersAction) -> None:
     export = commands.add_parser(
@@ -50,6 +52,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="replace --out if it exists (without it an existing file is kept and the export "
         "refused, exit 4)",
     )
+    add_allow_damaged(foxglove, "writes the view")
     foxglove.add_argument("--json", action="store_true", help="print the summary as JSON")
     foxglove.set_defaults(run=run)
 
@@ -68,9 +71,14 @@ def run(args: argparse.Namespace) -> int:
         report = export_foxglove(
             args.input, args.out, config, args.calibration, args.force, bar.update
         )
+    # A damaged recording is exported as far as it reads, and says so (as replay does).
+    status = report_damage(args.input, report.integrity, args.allow_damaged, _VIEW_OF_THE_REST)
     if args.json:
         print(json.dumps(report.as_dict(), indent=1))
-        return 0
+        return status
     channels = ", ".join(f"{topic} {n}" for topic, n in report.channels.items()) or "nothing"
     print(f"{report.output}: {report.scans} scans, {report.trees} trees; {channels}")
-    return 0
+    return status
+
+
+_VIEW_OF_THE_REST = "the view is of the rest"

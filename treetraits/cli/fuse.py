@@ -8,7 +8,9 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from treetraits.damage import add_allow_damaged, integrity_facts, report_damage
 from treetraits.errors import CalibrationError, ConfigError, SourceError
+from treetraits.files import check_output_file
 
 if TYPE_CHECKING:
     import numpy as np
@@ -62,6 +64,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--no-occlusion", action="store_true", help="draw hidden points too (no z-buffer)"
     )
     fuse.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_allow_damaged(fuse, "draws the picture")
     fuse.set_defaults(run=run_fuse)
 
 
@@ -105,9 +108,10 @@ def _scan(path: str, number: int) -> Scan:
     )
 
 
-def _frames_near(path: str, t_mid: int, max_skew_ns: int) -> tuple[list[int], list[Frame]]:
+def _frames_near(path: str, t_mid: int, max_skew_ns: int) -> tuple[list[int], list[Frame], dict]:
     """Every frame's capture time, and the frames within the skew limit (bytes kept only
-    for those, so a long recording is not held in memory)."""
+    for those, so a long recording is not held in memory); and what of the recording could
+    not be read (the whole file is read: treetraits/damage.py)."""
     from treetraits.drivers import recording
     from treetraits.drivers.records import Frame
 
@@ -120,7 +124,7 @@ def _frames_near(path: str, t_mid: int, max_skew_ns: int) -> tuple[list[int], li
                 near.append(
                     Frame(message.data, message.log_time, message.publish_time, message.sequence)
                 )
-    return times, near
+    return times, near, integrity_facts(reader)
 
 
 def run_fuse(args: argparse.Namespace) -> int:
@@ -143,6 +147,7 @@ def run_fuse(args: argparse.Namespace) -> int:
         scan_mid_time,
     )
 
+    check_output_file(args.out)  # a directory: before the recording is read
     if args.scan < 0:
         raise ConfigError(f"--scan must be >= 0, got {args.scan}")
     if args.dot_radius < 0:
@@ -153,7 +158,7 @@ def run_fuse(args: argparse.Namespace) -> int:
     max_skew_ns = int(args.max_skew_ms * 1e6)
     scan = _scan(args.input, args.scan)
     t_mid = scan_mid_time(scan)
-    times, near = _frames_near(args.input, t_mid, max_skew_ns)
+    times, near, damage = _frames_near(args.input, t_mid, max_skew_ns)
     match = nearest_frame(times, t_mid, max_skew_ns)
     if match.reason == "no_frame":
         raise SourceError(f"{args.input}: no {recording.CAMERA_JPEG} frames in the recording")
@@ -204,12 +209,13 @@ def run_fuse(args: argparse.Namespace) -> int:
         "calibration": str(args.calibration) if args.calibration else "recording metadata",
         "out": str(args.out),
     }
+    status = report_damage(args.input, damage, args.allow_damaged, "the picture is of the rest")
     if args.json:
         print(json.dumps(facts, indent=1))
     else:
         width = max(len(k) for k in facts)
         print("\n".join(f"{k:<{width}}  {v}" for k, v in facts.items()))
-    return 0
+    return status
 
 
 def _height_range(text: str | None, heights: np.ndarray) -> tuple[float, float]:

@@ -90,7 +90,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         metavar="1-100",
         help="JPEG quality for raw images (default 90); compressed JPEGs are copied as they are",
     )
-    parser.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    parser.add_argument(
+        "--force",
+        "--overwrite",  # the option's first name, kept for the scripts that use it
+        dest="force",
+        action="store_true",
+        help="replace --out if it exists (without it an existing file is kept and the import "
+        "refused, exit 4); --overwrite is the same",
+    )
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.set_defaults(run=run)
 
@@ -124,7 +131,7 @@ def options_from_args(args: argparse.Namespace) -> ImportOptions:
         gnss_quality=quality,
         calibration=calibration,
         jpeg_quality=args.jpeg_quality,
-        overwrite=args.overwrite,
+        force=args.force,
     )
 
 
@@ -132,7 +139,9 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from treetraits.drivers.rosbag.convert import import_bags
+    from treetraits.files import check_output_file
 
+    check_output_file(args.out, force=args.force)  # before the bags and the calibration
     options = options_from_args(args)
     with tqdm(unit="msg", desc="import", leave=False, disable=None) as bar:
 

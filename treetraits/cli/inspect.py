@@ -8,7 +8,9 @@ import sys
 from pathlib import Path
 
 from treetraits.cli.lidar import _INPUT_HELP, _add_decoder_options, _reader
+from treetraits.damage import add_allow_damaged, describe_loss, report_damage, source_integrity
 from treetraits.errors import ConfigError
+from treetraits.files import check_output_file
 
 _COLUMNS_HELP = """\
 columns (lengths in metres, base frame: x forward, y left, z up from the ground under
@@ -96,6 +98,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="only this scan: do not map the scans before it (their tracks and what the "
         "map holds of each object are then not shown; quicker for a late scan)",
     )
+    add_allow_damaged(inspect, "prints the scan")
     _add_decoder_options(inspect)
     inspect.set_defaults(run=run)
 
@@ -117,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.time is not None and not args.time == args.time:  # NaN
         raise ConfigError("--time must be a number of seconds")
+    if args.png is not None:
+        check_output_file(args.png, "--png")  # a directory: before the scans are read
     config = load_config(args.config)
     path = Path(args.path)
     # The calibration as `replay` takes it (--calibration, the recording's, the config's),
@@ -133,8 +138,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         scans = (item for item in reader if isinstance(item, Scan))
         picked = pick_scan(scans, args.scan, args.time)
+    except ConfigError as exc:  # past the last scan: of a cut file, say so
+        damage = source_integrity(reader.source)
+        if not damage["data_loss"]:
+            raise
+        raise ConfigError(
+            f"{exc}, of what could be read: {path}: {describe_loss(damage)}"
+        ) from None
     finally:
         reader.close()
+    # What was read up to the scan: damage after it does not change what is shown.
+    damage = source_integrity(reader.source)
     scan = picked.scan
     points = scan.distinct if scan.points["duplicate"].any() else scan.points
     if args.no_tracks or config.pipeline.method.startswith("rph"):
@@ -171,9 +185,10 @@ def run(args: argparse.Namespace) -> int:
         image = draw_scan(to_base(points, T_base_lidar), clusters, T_base_lidar, title, box)
         write_png(args.png, image)
         facts["png"] = str(args.png)
+    status = report_damage(path, damage, args.allow_damaged, _OF_THE_REST)
     if args.json:
         print(json.dumps(facts, indent=1, allow_nan=False))
-        return 0
+        return status
     print(
         f"{path}: full scan {picked.number} at {picked.t_s:.2f} s, {len(points)} returns, "
         f"calibration {facts['calibration']}, no NDVI"
@@ -182,7 +197,10 @@ def run(args: argparse.Namespace) -> int:
     print(format_summary(summary))
     if args.png is not None:
         print(f"picture: {args.png}")
-    return 0
+    return status
+
+
+_OF_THE_REST = "the scans are of the rest"
 
 
 def _calibration_source(given: Path | None, source: str) -> str:

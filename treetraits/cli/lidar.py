@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from treetraits.damage import add_allow_damaged, report_damage, source_integrity
 from treetraits.errors import ConfigError
 from treetraits.service.outdir import OutputDir
 
@@ -45,6 +46,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     info.add_argument("path", help=_INPUT_HELP)
     info.add_argument("--json", action="store_true", help="print one JSON object")
+    add_allow_damaged(info, "prints the summary")
     _add_decoder_options(info)
     info.set_defaults(run=run_info)
 
@@ -67,6 +69,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="replace an earlier export in DIR (its scans.csv and every scan_*.pcd; without "
         "it the export is refused, exit 4)",
     )
+    add_allow_damaged(export, "writes the scans")
     _add_decoder_options(export)
     export.set_defaults(run=run_export)
 
@@ -141,11 +144,19 @@ def run_info(args: argparse.Namespace) -> int:
         facts = _summarise(reader)
     finally:
         reader.close()
+    damage = source_integrity(reader.source)
+    # `lost` is the packets the batcher missed: the recording's lost time spans apart.
+    facts.update(
+        damaged_chunks=damage["damaged_chunks"],
+        lost_spans=damage["lost"],
+        data_loss=damage["data_loss"],
+    )
+    status = report_damage(args.path, damage, args.allow_damaged, "the summary is of the rest")
     if args.json:
         print(json.dumps(facts, indent=1))
     else:
         print(_format_facts(args.path, facts))
-    return 0
+    return status
 
 
 def _format_facts(title: str, facts: dict) -> str:
@@ -196,7 +207,8 @@ def run_export(args: argparse.Namespace) -> int:
     finally:
         reader.close()
     print(f"wrote {written} scans to {args.out} (index: {args.out / 'scans.csv'})")
-    return 0
+    damage = source_integrity(reader.source)
+    return report_damage(args.path, damage, args.allow_damaged, "the scans are of the rest")
 
 
 def _export_one(out: Path, index, number: int, scan: Scan) -> int:

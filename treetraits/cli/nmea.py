@@ -6,7 +6,8 @@ import argparse
 import json
 import sys
 
-from treetraits.errors import ConfigError
+from treetraits.damage import add_allow_damaged, report_damage, source_integrity
+from treetraits.errors import ConfigError, SourceError
 
 _INPUT_HELP = (
     "an NMEA text log, an MCAP recording (format v1; its /gnss/nmea channel), a serial "
@@ -54,6 +55,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         metavar="MODES",
         help="THS modes whose heading is used (default A; AE also takes estimated headings)",
     )
+    add_allow_damaged(info, "prints the summary")
     info.set_defaults(run=run_info)
 
 
@@ -76,12 +78,23 @@ def run_info(args: argparse.Namespace) -> int:
         facts = summarise(source, seconds=args.seconds, ths_modes=modes)
     finally:
         source.close()
+    if not source.is_live and facts["sentences"] == 0:
+        # A text file with no sentence in it is not an NMEA log read as empty: refused.
+        raise SourceError(
+            f"{args.path}: no NMEA sentence was found in it (expected an NMEA log, or a "
+            "recording with /gnss/nmea)"
+        )
+    status = 0
+    if not source.is_live:
+        status = report_damage(
+            args.path, source_integrity(source), args.allow_damaged, "the counts are of the rest"
+        )
     facts = {"source": source.uri, "is_live": source.is_live, **facts}
     if args.json:
         print(json.dumps(facts, indent=1))
     else:
         print(format_facts(facts))
-    return 0
+    return status
 
 
 def _counts(mapping: dict) -> str:

@@ -7,7 +7,9 @@ import ipaddress
 import time
 from pathlib import Path
 
+from treetraits.damage import add_allow_damaged, report_damage
 from treetraits.errors import ConfigError
+from treetraits.files import check_output_file
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -62,6 +64,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         type=Path,
         help="also write the camera frames as an MJPG video here first (for camera.device)",
     )
+    add_allow_damaged(play, "plays what it read")
     play.set_defaults(run=run)
 
 
@@ -71,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.speed > 0:
         raise ConfigError(f"--speed must be positive, got {args.speed}")
     if args.camera_video is not None:
+        check_output_file(args.camera_video, "--camera-video")
         print(f"camera video: {write_camera_video(args.recording, args.camera_video)}")
     host, port = args.lidar
     with RecordingPlayer(
@@ -85,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"gnss: {player.gnss_device}")
         print(f"wheels: {player.wheels_device}")
         print(f"lidar: udp://{host}:{port} ({player.duration_s:.1f} s at x{args.speed:g})")
+        # Read whole before playing: the loss is known, and said, before the first packet.
+        status = report_damage(
+            args.recording, player.integrity, args.allow_damaged, "only the rest is played"
+        )
         player.start()
         try:
             while not player.wait(timeout=1.0):
@@ -102,4 +110,4 @@ def run(args: argparse.Namespace) -> int:
         f"lateness median {counters['lidar_late_median_ms']:.2f} ms, "
         f"max {counters['lidar_late_max_ms']:.1f} ms"
     )
-    return 0
+    return status

@@ -26,7 +26,12 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
+    from treetraits.files import check_output_file
     from treetraits.service.logs import setup_logging
+
+    # A directory is refused before any device is opened; an existing recording is the
+    # recorder's to refuse (never overwritten, exit 4).
+    check_output_file(args.out)
     from treetraits.service.runtime import Service
 
     cfg = read_config(args.config)

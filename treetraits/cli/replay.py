@@ -10,7 +10,8 @@ import time
 from pathlib import Path
 
 from treetraits.cli.stopping import EXIT_BY_SIGNAL, StopOnSignal
-from treetraits.errors import EXIT_DATA_LOSS, ConfigError
+from treetraits.damage import add_allow_damaged, format_loss, report_damage
+from treetraits.errors import ConfigError
 from treetraits.service.outdir import OutputDir
 
 
@@ -74,12 +75,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "traits.method",
     )
     replay.add_argument("--json", action="store_true", help="print the summary as JSON")
-    replay.add_argument(
-        "--allow-damaged",
-        action="store_true",
-        help="exit 0 also when the recording is damaged or cut (without it such a replay "
-        "still writes the outputs of what it read, but exits 3: completed with data loss)",
-    )
+    add_allow_damaged(replay, "writes the outputs")
     replay.add_argument(
         "--force",
         action="store_true",
@@ -155,12 +151,10 @@ def run(args: argparse.Namespace) -> int:
     summary.pop("calibration", None)
     # A damaged recording is replayed as far as it reads, and says so: its outputs are
     # kept, the exit status tells that data is missing from them.
-    status = EXIT_DATA_LOSS if summary["data_loss"] and not args.allow_damaged else 0
+    status = report_damage(args.input, summary, args.allow_damaged)
     if stop.reason:
         status = EXIT_BY_SIGNAL[stop.reason]
         print(f"treetraits: error: {_interrupted(stop.reason, summary, output)}", file=sys.stderr)
-    if summary["data_loss"]:
-        print(f"treetraits: warning: {args.input}: {format_loss(summary)}", file=sys.stderr)
     if args.json:
         print(json.dumps(summary, indent=1))
         return status
@@ -188,28 +182,4 @@ def _interrupted(reason: str, summary: dict, output: OutputDir) -> str:
     return (
         f"interrupted ({reason}): the outputs of the {summary['scans']} scans replayed so far "
         f"are {where}, marked end = interrupted ({reason})"
-    )
-
-
-def format_loss(summary: dict) -> str:
-    """One line on what of the input could not be read."""
-    parts = []
-    if summary["damaged_chunks"]:
-        parts.append(f"{summary['damaged_chunks']} damaged chunk(s) skipped")
-    if summary["truncated"]:
-        parts.append("the file is cut short")
-        if summary["field_map"]["source"] == "none":
-            # The simulator attaches the field map at the end of its recording (the live
-            # recorder at the start): cut, it is lost and the trees go unmatched.
-            parts.append(
-                "no field map was read (one attached to the recording would be in the part "
-                "cut off; give --field-map FILE)"
-            )
-    spans = "; ".join(
-        f"between {s['from'] or 'the start'} and {s['to'] or 'the end'}" for s in summary["lost"]
-    )
-    lost = f"; messages lost {spans}" if spans else ""
-    return (
-        f"{' and '.join(parts) or 'damaged'}{lost}; the outputs are from the rest "
-        f"(exit {EXIT_DATA_LOSS}; --allow-damaged accepts it)"
     )

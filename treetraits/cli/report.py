@@ -33,7 +33,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from treetraits.extras import require_extra
+    from treetraits.files import check_output_file
 
+    check_output_file(args.out, force=args.force)  # before any work: a directory, a page
     require_extra("season", "treetraits report", ("matplotlib",))
     from treetraits.season.report import load_report_data, write_report
     from treetraits.service.outdir import OutputDir

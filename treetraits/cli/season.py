@@ -47,9 +47,11 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from treetraits.readonly import sqlite_errors
     from treetraits.season.store import SeasonError, SeasonStore, season_trees_json
 
-    with SeasonStore(args.season, create=False) as season:
+    # Read-only (treetraits/readonly.py); an SQLite error names the store.
+    with SeasonStore(args.season, create=False) as season, sqlite_errors(args.season):
         if args.season_command == "export":
             return _export(args, season)
         trees = season.trees(args.tree_id if args.season_command == "tree" else None)

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from treetraits.errors import ConfigError
+from treetraits.files import check_output_file
 from treetraits.service.outdir import OutputDir
 
 QUALITIES = {"rtk": 4, "float": 5, "dgps": 2, "autonomous": 1}
@@ -308,8 +309,7 @@ def _output(out: Path, force: bool, calibration: Path | None) -> OutputDir:
     """The recording and the files `simulate_survey` writes beside it, under the output
     rules (docs/cli.md); locked per recording, so several can be simulated into one
     directory at once."""
-    if out.is_dir():
-        raise ConfigError(f"--out {out}: is a directory; give the recording's file name")
+    check_output_file(out)  # a directory; an earlier recording is OutputDir's (exit 4)
     beside = (".truth.csv", ".objects.csv", ".field_map.geojson")
     owned = [out.name] + [out.with_suffix(suffix).name for suffix in beside]
     return OutputDir(

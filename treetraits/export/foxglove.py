@@ -26,14 +26,16 @@ from typing import IO, Any
 
 import numpy as np
 
+from treetraits.damage import integrity_facts
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.drivers.records import Fix, Frame, Scan
-from treetraits.errors import ConfigError, OutputExistsError, ParseError, SourceError
-from treetraits.files import write_atomically
+from treetraits.drivers.rosbag.detect import refuse_ros_bag
+from treetraits.errors import ConfigError, ParseError, SourceError
+from treetraits.files import check_output_file, write_atomically
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.localization.pose import Pose
 
@@ -69,9 +71,12 @@ class ExportReport:
     trees: int = 0
     world_frame: str | None = None
     origin: tuple[float, float] | None = None  # map origin in the world frame
+    # What of the recording could not be read (treetraits/damage.py): the view is of the rest.
+    integrity: dict[str, Any] = field(default_factory=integrity_facts)
 
     def as_dict(self) -> dict[str, Any]:
-        return {**vars(self), "origin": list(self.origin) if self.origin else None}
+        facts = {k: v for k, v in vars(self).items() if k != "integrity"}
+        return {**facts, "origin": list(self.origin) if self.origin else None, **self.integrity}
 
 
 def ns_timestamp(message_field: Any, t_ns: int) -> None:
@@ -327,18 +332,19 @@ def scene_update(trees: list, origin: tuple[float, float], t: int) -> Any:
 def run_recording(run_dir: Path) -> tuple[Path, dict]:
     """The recording a replay output directory came from, and its run facts."""
     import json
-    import sqlite3
 
+    from treetraits.readonly import connect_read_only, sqlite_errors
     from treetraits.service.outputs import STORE_NAME
 
     store = run_dir / STORE_NAME
     if not store.is_file():
         raise SourceError(f"{run_dir}: no {STORE_NAME} (not a replay's output directory)")
-    try:
-        with contextlib.closing(sqlite3.connect(f"file:{store}?mode=ro", uri=True)) as db:
-            rows = list(db.execute("SELECT key, value FROM run"))
-    except sqlite3.Error as error:
-        raise SourceError(f"{store}: run facts unreadable ({error})") from None
+    # Read-only, leaving no -wal/-shm in the run directory (treetraits/readonly.py).
+    with (
+        contextlib.closing(connect_read_only(store, "a run's store")) as db,
+        sqlite_errors(store, "a run's store"),
+    ):
+        rows = list(db.execute("SELECT key, value FROM run"))
     facts = {}
     for key, value in rows:  # strings are stored as they are, the rest as JSON
         try:
@@ -369,12 +375,12 @@ def export_foxglove(
     from treetraits.service.config import with_method
     from treetraits.service.replay import ReplayOptions, open_replay
 
-    if output.exists() and not force:
-        raise OutputExistsError(f"{output}: exists; choose another --out or pass --force")
+    check_output_file(output, force=force)  # a directory, an earlier view: before any work
     if output.resolve() == source.resolve():
         raise ConfigError(f"{output}: is the input")
     recording, run_calibration = source, None
     if source.is_dir():
+        refuse_ros_bag(source, "a recording or a replay's output directory")
         recording, facts = run_recording(source)
         config = with_method(config, facts.get("method"), facts.get("traits"))
         run_calibration = facts.get("calibration")
@@ -401,6 +407,7 @@ def export_foxglove(
         )
         writer.finish()
         report.channels = dict(writer.counts)
+        report.integrity = inputs.source.integrity()  # once read to its end
 
     try:
         # Beside `output` and renamed when complete: a failed or interrupted export leaves

@@ -18,7 +18,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from treetraits import __version__
-from treetraits.errors import TreetraitsError
+from treetraits.drivers.rosbag.detect import refuse_ros_bag
+from treetraits.errors import SourceError, TreetraitsError
 from treetraits.pipeline.trees import Tree
 from treetraits.service.config import ServiceConfig
 
@@ -158,7 +159,11 @@ def plan(
     seen: set[str] = set()
     for path in recordings:
         try:
+            refuse_ros_bag(path, "a recording")  # a bag: the import to run first
             fingerprint = recording_fingerprint(path)
+        except SourceError as exc:
+            outcome.failed[str(path)] = str(exc)
+            continue
         except OSError as exc:
             outcome.failed[str(path)] = _describe(exc)
             continue

@@ -15,7 +15,6 @@ import html
 import io
 import json
 import math
-import sqlite3
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -84,28 +83,22 @@ def load_report_data(source: Path) -> ReportData:
     return _season_data(source)
 
 
-def _connect(path: Path) -> sqlite3.Connection:
-    try:
-        db = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
-        db.execute("SELECT name FROM sqlite_master").fetchall()
-    except sqlite3.DatabaseError as exc:
-        raise SourceError(f"{path}: not an SQLite store ({exc})") from None
-    return db
-
-
 def _run_data(store: Path, run_dir: Path) -> ReportData:
-    db = _connect(store)
+    from treetraits.readonly import connect_read_only, sqlite_errors
+
+    db = connect_read_only(store)  # read-only: no -wal/-shm left in the run directory
     try:
-        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master")}
-        if not {"run", "trees"} <= tables:
-            raise SourceError(f"{store}: not a run's store (no run or trees table)")
-        facts = dict(db.execute("SELECT key, value FROM run").fetchall())
-        columns = {r[1] for r in db.execute("PRAGMA table_info(trees)")}
-        top_seen = "height_top_seen" if "height_top_seen" in columns else "NULL"  # older runs
-        rows = db.execute(
-            "SELECT tree_id, row, easting, northing, width_m, height_m, ndvi, status, "
-            f"{top_seen} FROM trees WHERE easting IS NOT NULL ORDER BY tree_id"
-        ).fetchall()
+        with sqlite_errors(store):
+            tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master")}
+            if not {"run", "trees"} <= tables:
+                raise SourceError(f"{store}: not a run's store (no run or trees table)")
+            facts = dict(db.execute("SELECT key, value FROM run").fetchall())
+            columns = {r[1] for r in db.execute("PRAGMA table_info(trees)")}
+            top_seen = "height_top_seen" if "height_top_seen" in columns else "NULL"  # older
+            rows = db.execute(
+                "SELECT tree_id, row, easting, northing, width_m, height_m, ndvi, status, "
+                f"{top_seen} FROM trees WHERE easting IS NOT NULL ORDER BY tree_id"
+            ).fetchall()
     finally:
         db.close()
     top = TREE_FIELD["height_top_seen"]
@@ -142,11 +135,12 @@ def _json_list(text: str | None) -> list:
 
 
 def _season_data(path: Path) -> ReportData:
+    from treetraits.readonly import sqlite_errors
     from treetraits.season.export import growth
     from treetraits.season.store import SeasonError, SeasonStore
 
     try:
-        with SeasonStore(path, create=False) as season:
+        with SeasonStore(path, create=False) as season, sqlite_errors(path, "a season store"):
             trees = season.trees()
             surveys = season.surveys()
     except SeasonError as exc:

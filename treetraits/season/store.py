@@ -158,28 +158,32 @@ class SeasonStore:
     transaction."""
 
     def __init__(self, path: str | Path, *, create: bool = True):
+        from treetraits.readonly import connect_read_only, sqlite_errors
+
         self.path = Path(path)
         if not create and not self.path.is_file():
             raise SeasonError(f"{self.path}: no such season store (batch writes one)")
-        # A reader (`create=False`: season, report) never writes; WAL lets it read while
-        # a batch is writing.
-        self._db = sqlite3.connect(self.path, isolation_level=None, timeout=30)
+        # A reader (`create=False`: season, report) never writes: opened read-only, on a
+        # read-only disk too, and leaving no -wal/-shm (treetraits/readonly.py). WAL lets
+        # it read while a batch is writing.
+        with sqlite_errors(self.path, "a season store"):
+            self._db = (
+                sqlite3.connect(self.path, isolation_level=None, timeout=30)
+                if create
+                else connect_read_only(self.path, "a season store")
+            )
         try:
-            self._db.execute("PRAGMA foreign_keys=ON")
-            if create:
-                self._db.execute("PRAGMA journal_mode=WAL")
-                self._db.executescript(SCHEMA)
-                self._db.execute(
-                    "INSERT OR IGNORE INTO season VALUES ('schema_version', ?)",
-                    (SCHEMA_VERSION,),
-                )
-            self._check()
-        except sqlite3.OperationalError:  # locked, unreadable: the system's words (exit 6)
-            self._db.close()
-            raise
-        except sqlite3.DatabaseError as exc:
-            self._db.close()
-            raise SeasonError(f"{self.path}: not a season store ({exc})") from exc
+            # Locked, unreadable: the system's words, naming the file (exit 6).
+            with sqlite_errors(self.path, "a season store"):
+                if create:
+                    self._db.execute("PRAGMA foreign_keys=ON")
+                    self._db.execute("PRAGMA journal_mode=WAL")
+                    self._db.executescript(SCHEMA)
+                    self._db.execute(
+                        "INSERT OR IGNORE INTO season VALUES ('schema_version', ?)",
+                        (SCHEMA_VERSION,),
+                    )
+                self._check()
         except BaseException:
             self._db.close()
             raise

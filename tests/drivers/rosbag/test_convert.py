@@ -520,7 +520,7 @@ def test_help_explains_every_option_and_bad_options_are_one_line(tmp_path):
     assert result.returncode == 0 and result.stdout.startswith("usage: treetraits import")
     for option in (
         "--out", "--topics", "--calibration", "--preset", "--gnss-quality", "--jpeg-quality",
-        "--overwrite", "--json",
+        "--force", "--overwrite", "--json",
     ):  # fmt: skip
         assert option in result.stdout
     text = " ".join(result.stdout.split())  # argparse wraps lines
@@ -536,10 +536,32 @@ def test_help_explains_every_option_and_bad_options_are_one_line(tmp_path):
     bad = cli("import", str(NEBULA_BAG), "--out", str(tmp_path / "o.mcap"), "--topics", "sonar=/x")
     assert bad.returncode == 2 and "unknown kind 'sonar'" in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_an_existing_output_is_exit_4_and_force_replaces_it_as_every_command(tmp_path):
+    """docs/cli.md: an earlier output is refused with exit 4 and replaced with --force, as
+    by every command (import used to say exit 2 and --overwrite, still an alias); a
+    directory where the recording is wanted is refused before any bag is read."""
     out = tmp_path / "o.mcap"
     out.write_bytes(b"")
     exists = cli("import", str(NEBULA_BAG), "--out", str(out))
-    assert exists.returncode == 2 and "--overwrite" in exists.stderr
+    assert exists.returncode == 4, exists.stderr
+    assert exists.stderr == (
+        f"treetraits: error: {out}: exists; give --force to replace it, or choose another --out\n"
+    )
+    assert out.read_bytes() == b""
+    for option in ("--force", "--overwrite"):
+        replaced = cli("import", str(NEBULA_BAG), "--out", str(out), option, "--json")
+        assert replaced.returncode == 0, replaced.stderr
+        assert json.loads(replaced.stdout)["channels"]["/lidar/packets"] > 0
+        assert rec.read_recording(out).metadata is not None
+    folder = tmp_path / "folder.mcap"
+    folder.mkdir()
+    for force in ([], ["--force"]):
+        refused = cli("import", str(NEBULA_BAG), "--out", str(folder), *force)
+        assert refused.returncode == 2, refused.stderr
+        assert refused.stderr.startswith(f"treetraits: error: {folder}: is a directory; ")
+        assert list(folder.iterdir()) == []
 
 
 def test_navsatfix_gets_a_course_made_good_once_the_receiver_moves(tmp_path):
