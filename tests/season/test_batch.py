@@ -1,15 +1,13 @@
 """`treetraits batch` on Dask distributed over three small twin recordings, the season it
 writes, and `treetraits report` on it: a 2-worker LocalCluster; a scheduler and a worker
-started as processes of their own on loopback; the page parsed, its images decoded and
+started as processes of their own on loopback; the page parsed, its SVG figures read and
 rendered by a real headless Chromium."""
 
 from __future__ import annotations
 
-import base64
 import io
 import json
 import os
-import re
 import shutil
 import socket
 import sqlite3
@@ -17,12 +15,12 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
-from html.parser import HTMLParser
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.helpers.report_page import SVG, Page, by_id, texts
 from tests.helpers.surveys import twin_survey
 from treetraits.cli import main
 from treetraits.pipeline.linking import link_surveys
@@ -126,57 +124,33 @@ def test_position_linking_on_the_runs_trees(batch):
             assert statuses == ["found"] * 3
 
 
-class _Page(HTMLParser):
-    def __init__(self):
-        super().__init__()
-        self.images: list[str] = []
-        self.headings: list[str] = []
-        self.cells: list[str] = []
-        self.links: list[str] = []
-        self._tag = None
-
-    def handle_starttag(self, tag, attrs):
-        attrs = dict(attrs)
-        self._tag = tag
-        if tag == "img":
-            self.images.append(attrs["src"])
-        for name in ("href", "src"):
-            if name in attrs and not attrs[name].startswith("data:"):
-                self.links.append(attrs[name])
-
-    def handle_data(self, data):
-        if self._tag in ("h1", "h2"):
-            self.headings.append(data.strip())
-        if self._tag == "td":
-            self.cells.append(data.strip())
-
-
-def _decode_png(src: str) -> np.ndarray:
+def _decode_png(data: bytes) -> np.ndarray:
     import matplotlib.image
 
-    prefix = "data:image/png;base64,"
-    assert src.startswith(prefix)
-    data = base64.b64decode(src[len(prefix) :], validate=True)
     assert data.startswith(b"\x89PNG\r\n\x1a\n")
     return matplotlib.image.imread(io.BytesIO(data), format="png")
 
 
-def test_the_season_report_is_one_page_with_its_images(batch, tmp_path):
+def test_the_season_report_is_one_page_with_its_figures(batch, tmp_path):
     season = batch[0]
     page = tmp_path / "season.html"
     assert main(["report", str(season), "--out", str(page)]) == 0
-    parser = _Page()
-    parser.feed(page.read_text())
-    assert parser.links == []  # nothing to fetch: it opens offline
+    parsed = Page.read(page.read_text())
+    assert parsed.links == []  # nothing to fetch: it opens offline
     for heading in ("Map of the block", "Per row", "Distributions", "Growth"):
-        assert heading in parser.headings
-    assert len(parser.images) == 4  # map, histograms, growth map, histories
-    for src in parser.images:
-        image = _decode_png(src)
-        assert image.shape[0] > 200 and image.shape[1] > 400
-        assert image[..., :3].std() > 0.05  # drawn, not a blank canvas
+        assert heading in parsed.headings
+    # Map, histograms, growth map, histories: inline SVG, drawn and labelled.
+    assert set(parsed.figures) == {"map", "histograms", "growth", "histories"}
+    for figure in parsed.figures.values():
+        assert len(list(figure.iter(f"{SVG}path"))) > 20
+        assert len(texts(figure)) > 10
     # The per-row table: the twin's two rows, two trees found in each.
-    assert parser.cells[parser.cells.index("1") : parser.cells.index("1") + 3] == ["1", "2", "0"]
+    rows = {r[0]: r[1:3] for r in parsed.table("row")[1:]}
+    assert rows == {"1": ["2", "0"], "2": ["2", "0"]}
+    # The three surveys share the twin's one date: the time axis is the days around it
+    # (matplotlib alone spreads a single date over years).
+    ticks = texts(by_id(parsed.figures["histories"], "histories-width_m-dates"))
+    assert ticks == ["2026-05-11", "2026-05-12", "2026-05-13", "2026-05-14", "survey date (UTC)"]
     assert main(["report", str(season), "--out", str(page)]) == 4  # kept without --force
 
 
@@ -186,22 +160,21 @@ def test_a_run_report_and_a_bad_source(batch, tmp_path, capsys):
         run_dir = store.surveys()[0].run_dir
     page = tmp_path / "run.html"
     assert main(["report", run_dir, "--out", str(page)]) == 0
-    parser = _Page()
-    parser.feed(page.read_text())
-    assert len(parser.images) == 2 and "Growth" not in parser.headings
+    parsed = Page.read(page.read_text())
+    assert set(parsed.figures) == {"map", "histograms"} and "Growth" not in parsed.headings
     # Heights whose top the LiDAR never saw are shown as lower bounds, as the store says.
     with sqlite3.connect(Path(run_dir) / "traits.sqlite") as db:
         flags = dict(
             db.execute("SELECT tree_id, height_top_seen FROM trees WHERE status = 'found'")
         )
-    text = page.read_text()
     bounded = [tree_id for tree_id, seen in flags.items() if seen == 0]
     assert bounded  # a 10 m drive into a 2x2 block: no top in view (measured: 4 of 4)
+    header, *rows = parsed.table("tree")
+    heights = {r[header.index("run id")]: r[header.index("height (m)")] for r in rows}
+    assert set(heights) == set(flags)
     for tree_id, seen in flags.items():
-        row = rf"<tr><td>{tree_id}</td><td>[^<]*</td><td>found</td><td>[^<]*</td><td>([^<]*)<"
-        cell = re.search(row, text)
-        assert cell.group(1).startswith("&gt;") == (seen == 0), (tree_id, cell.group(1))
-    assert "a lower bound" in text
+        assert heights[tree_id].startswith(">") == (seen == 0), (tree_id, heights[tree_id])
+    assert "a lower bound" in page.read_text()
     assert main(["report", str(tmp_path), "--out", str(tmp_path / "x.html")]) == 2
     assert "no traits.sqlite" in capsys.readouterr().err
     assert not (tmp_path / "x.html").exists()
@@ -237,7 +210,7 @@ def test_chromium_renders_the_report(batch, tmp_path):
         cwd=tmp_path,
     )
     assert result.returncode == 0, result.stderr[-2000:]
-    image = _decode_png("data:image/png;base64," + base64.b64encode(shot.read_bytes()).decode())
+    image = _decode_png(shot.read_bytes())
     assert image.shape[:2] == (1800, 1200)
     rgb = image[..., :3]
     # The page is drawn: the map's colours and the text, not a white or an error page.

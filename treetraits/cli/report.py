@@ -14,9 +14,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         description=(
             "Write one self-contained HTML page (images embedded, nothing fetched) of a run "
             "directory (replay's or batch's outputs) or a season store: the map of the block "
-            "with each tree drawn to its width and coloured by height or NDVI over the "
-            "robot's path, missing trees marked, the per-row table, histograms of width, "
-            "height and NDVI; for a season also the growth map and a few trees' histories."
+            "with each tree drawn to its width, coloured by height or NDVI and labelled with "
+            "its field-map id (the run's id, marked #, where it was not matched), over the "
+            "robot's path, missing trees and rejected objects marked, the per-row table, "
+            "histograms of width, height and NDVI, the objects rejected and why, and a note "
+            "where the run had no GNSS fix; for a season also the growth map and a few "
+            "trees' histories against the survey dates."
         ),
     )
     report.add_argument("source", type=Path, metavar="RUN_DIR|SEASON.sqlite")

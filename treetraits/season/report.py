@@ -1,41 +1,71 @@
 """`treetraits report`: one self-contained HTML page of a run or a season, for a grower
 to open offline (docs/season.md, "Report").
 
-The page holds everything: the figures are PNGs drawn with matplotlib's Agg canvas and
-embedded as base64 data URIs, the style is inline, there is no script and no link to
+The page holds everything: the figures are SVG drawn by matplotlib and put inline
+(treetraits/season/figures.py), the style is inline, there is no script and no link to
 fetch. Reading the inputs (`load_report_data`) is apart from drawing (`write_report`), so
 a bad input fails before an output is touched.
+
+Trees are named as the grower's field map names them (`T17`) wherever the run matched
+them to it; a tree it did not match keeps the run's own id, marked `#` (`#4`), so the two
+are never confused.
 """
 
 from __future__ import annotations
 
-import base64
 import contextlib
+import datetime as dt
 import html
-import io
+import itertools
 import json
 import math
-from collections import defaultdict
+import re
+import sqlite3
+from collections import Counter, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from treetraits.errors import SourceError
 from treetraits.files import write_atomically
+from treetraits.pipeline import classify
 from treetraits.pipeline.trees import TREE_FIELD, iso_utc
+
+if TYPE_CHECKING:
+    from treetraits.season.store import SeasonTree, Survey
 
 # Trees whose histories the season page plots (the ones found in the most surveys).
 HISTORY_TREES = 4
+# Surveys closer together than this: the page says growth per 30 days is mostly noise.
+GROWTH_MIN_DAYS = 30
+# A tree the run did not match to the field map: its run id, marked so.
+RUN_ID_MARK = "#"
+
+# What each rejection reason (pipeline/classify.py) means to someone in the grove: the
+# rule the object failed and what usually fails it (docs/pipeline.md, "What a tree is").
+REASON_TEXT = {
+    classify.LOW: "too low for a tree: weeds, cover crop, a drip line",
+    classify.TALL: "too tall for a tree: a building, a mast",
+    classify.FLOATING: "nothing under it near the ground: a roof edge, a piece of a crown",
+    classify.THIN: "too narrow for a crown: a post, a pole, a trunk without its crown",
+    classify.SLENDER: "too narrow for its height: a person, a pole",
+    classify.WIDE: "wider than any crown: a wall, a building",
+    classify.SMOOTH: "its surface is not foliage: a wall, a shed, a vehicle",
+    classify.NOT_GREEN: "the camera saw no vegetation on it",
+}
 
 
 @dataclass(frozen=True)
 class MapTree:
-    """A tree as the page draws it: position (UTM m), traits, found or missing."""
+    """A tree as the page shows it: its name, position (UTM m, None when the run had no
+    UTM position for it), traits, found or missing."""
 
-    tree_id: str
+    tree_id: str  # the store's: a run's own id (`missing:<field id>`), a season's
+    label: str  # the page's name for it: field id, else the run's id marked "#"
     row: str | None
-    easting: float
-    northing: float
+    easting: float | None
+    northing: float | None
     width_m: float | None
     height_m: float | None
     ndvi: float | None
@@ -44,16 +74,51 @@ class MapTree:
     # False: the crown's top was above the LiDAR's view in every scan, so the height is a
     # lower bound; None where the store does not say (a season, an older run).
     height_top_seen: bool | None = None
+    run_id: str | None = None  # the run's id (a run's page; None for a missing tree)
+    field_id: str | None = None  # the field-map tree it was matched to
+
+
+@dataclass(frozen=True)
+class RejectedObject:
+    """An object the run saw as often as a tree and judged not one, with why."""
+
+    object_id: str
+    reason: str
+    easting: float | None
+    northing: float | None
+    width_m: float | None
+    height_m: float | None
+    ndvi: float | None
+    observations: int | None
+    # Its vegetation cues (pipeline/vegetation.py); None in a store older than them.
+    evidence: float | None = None
+    texture_m: float | None = None
+    planar_share: float | None = None
+    intensity: float | None = None
 
 
 @dataclass(frozen=True)
 class History:
     tree_id: str
+    label: str
     dates: list[str]  # ISO UTC
     times_ns: list[int]
     width_m: list[float | None]
     height_m: list[float | None]
     ndvi: list[float | None]
+
+
+@dataclass(frozen=True)
+class SurveyRow:
+    """One survey of a season, as its table lists it."""
+
+    date: str  # ISO UTC
+    block: str
+    recording: str
+    found: int | None
+    missing: int | None
+    rejected: dict[str, int]  # reason -> objects
+    damaged: bool
 
 
 @dataclass(frozen=True)
@@ -65,7 +130,31 @@ class ReportData:
     path: list[tuple[float, float]] = field(default_factory=list)  # the robot's, UTM m
     facts: list[tuple[str, str]] = field(default_factory=list)
     histories: list[History] = field(default_factory=list)
-    surveys: list[tuple[str, str, str]] = field(default_factory=list)  # date, recording, status
+    surveys: list[SurveyRow] = field(default_factory=list)
+    survey_times: list[int] = field(default_factory=list)  # ns, the season's surveys
+    # What the reader must know to read the page right (no GNSS fix, trees off the map).
+    notes: list[str] = field(default_factory=list)
+    rejected: list[RejectedObject] = field(default_factory=list)
+    rejected_counts: dict[str, int] = field(default_factory=dict)  # reason -> objects
+
+
+def tree_label(run_id: str, field_id: str | None) -> str:
+    """The field map's id where the run matched the tree, else the run's id marked."""
+    return field_id if field_id else f"{RUN_ID_MARK}{run_id}"
+
+
+def page_title(kind: str, name: str, dates: Sequence[str]) -> str:
+    """The page's title: the kind, then the season's or the run's name, the kind's word
+    not said twice when the name holds it, then the survey dates (YYYY-MM-DD): "Season
+    north, 2026-05-11 to 2026-05-12"; for season.sqlite "Season, 2026-05-12"."""
+    words = set(re.split(r"[^a-z0-9]+", name.lower()))
+    head = name if kind.lower() in words else f"{kind} {name}"
+    head = head[:1].upper() + head[1:]
+    span = sorted(set(dates))
+    if not span:
+        return head
+    when = span[0] if len(span) == 1 else f"{span[0]} to {span[-1]}"
+    return f"{head}, {when}"
 
 
 def load_report_data(source: Path) -> ReportData:
@@ -83,6 +172,9 @@ def load_report_data(source: Path) -> ReportData:
     return _season_data(source)
 
 
+# --- a run ---------------------------------------------------------------------------
+
+
 def _run_data(store: Path, run_dir: Path) -> ReportData:
     from treetraits.readonly import connect_read_only, sqlite_errors
 
@@ -92,46 +184,188 @@ def _run_data(store: Path, run_dir: Path) -> ReportData:
             tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master")}
             if not {"run", "trees"} <= tables:
                 raise SourceError(f"{store}: not a run's store (no run or trees table)")
-            facts = dict(db.execute("SELECT key, value FROM run").fetchall())
-            columns = {r[1] for r in db.execute("PRAGMA table_info(trees)")}
-            top_seen = "height_top_seen" if "height_top_seen" in columns else "NULL"  # older
-            rows = db.execute(
-                "SELECT tree_id, row, easting, northing, width_m, height_m, ndvi, status, "
-                f"{top_seen} FROM trees WHERE easting IS NOT NULL ORDER BY tree_id"
-            ).fetchall()
+            facts = {k: _fact(v) for k, v in db.execute("SELECT key, value FROM run")}
+            trees, seen = _run_trees(db)
+            rejected = _rejected(db) if "rejected" in tables else []
     finally:
         db.close()
-    top = TREE_FIELD["height_top_seen"]
-    trees = [MapTree(*r[:8], height_top_seen=top.from_sql(r[8])) for r in rows]
-    path = _json_list(facts.get("path"))
-    shown = (
-        "input",
-        "software",
-        "method",
-        "traits",
-        "scans",
-        "trees",
-        "matched",
-        "missing",
-        "utm_zone",
-        "data_loss",
-    )
+    path = [(float(e), float(n)) for e, n in _list(facts.get("path"))]
+    counts = _rejected_counts(rejected, facts.get("rejected"))
+    name = Path(str(facts.get("input") or run_dir)).stem
+    dates = [iso_utc(seen)[:10]] if seen is not None else []
     return ReportData(
-        title=f"Survey {Path(facts.get('input', str(run_dir))).name}",
+        title=page_title("Survey", name, dates),
         source=str(run_dir),
         kind="run",
         trees=trees,
-        path=[(float(e), float(n)) for e, n in path],
-        facts=[(k, facts[k]) for k in shown if k in facts],
+        path=path,
+        facts=_run_facts(facts, trees, path, counts, seen),
+        notes=_run_notes(facts, trees),
+        rejected=rejected,
+        rejected_counts=counts,
     )
 
 
-def _json_list(text: str | None) -> list:
+def _fact(text: str) -> Any:
+    """A run fact as stored: JSON for what is not a plain string (replay's summary)."""
     try:
-        value = json.loads(text) if text else []
+        return json.loads(text)
     except ValueError:
-        return []
+        return text
+
+
+def _list(value: Any) -> list:
     return value if isinstance(value, list) else []
+
+
+def _run_trees(db: sqlite3.Connection) -> tuple[list[MapTree], int | None]:
+    """Every tree of the run, found and missing, with a UTM position or not; and when
+    the run first saw one (ns, the host clock), its date."""
+    columns = {r[1] for r in db.execute("PRAGMA table_info(trees)")}
+    top_seen = "height_top_seen" if "height_top_seen" in columns else "NULL"  # older runs
+    rows = db.execute(
+        "SELECT tree_id, field_id, row, easting, northing, width_m, height_m, ndvi, status, "
+        f"{top_seen}, first_seen FROM trees"
+    ).fetchall()
+    top = TREE_FIELD["height_top_seen"]
+    trees = []
+    for tree_id, field_id, row, e, n, width, height, ndvi, status, seen_top, _ in rows:
+        run_id = None if status == "missing" else str(tree_id)
+        trees.append(
+            MapTree(
+                str(tree_id),
+                tree_label(str(tree_id), field_id),
+                row,
+                e,
+                n,
+                width,
+                height,
+                ndvi,
+                status,
+                height_top_seen=top.from_sql(seen_top),
+                run_id=run_id,
+                field_id=field_id,
+            )
+        )
+    trees.sort(key=lambda t: (t.status != "found", _natural(t.label)))
+    first = [r[10] for r in rows if r[10] is not None]
+    return trees, min(first) if first else None
+
+
+def _natural(text: str) -> list:
+    """T2 before T10."""
+    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", text)]
+
+
+def _rejected(db: sqlite3.Connection) -> list[RejectedObject]:
+    columns = {r[1] for r in db.execute("PRAGMA table_info(rejected)")}
+    # A store older than the vegetation cues has no columns for them: NULL.
+    cues = ("evidence", "texture_m", "planar_share", "intensity")
+    cues = [c if c in columns else "NULL" for c in cues]
+    rows = db.execute(
+        "SELECT tree_id, reason, easting, northing, width_m, height_m, ndvi, observations, "
+        f"{', '.join(cues)} FROM rejected"
+    ).fetchall()
+    objects = [RejectedObject(str(r[0]), *r[1:]) for r in rows]
+    return sorted(objects, key=lambda o: (o.reason, _natural(o.object_id)))
+
+
+def _rejected_counts(rejected: Sequence[RejectedObject], fact: Any) -> dict[str, int]:
+    """Objects per reason: the store's `rejected` table, else the run's summary."""
+    if rejected:
+        counts = Counter(o.reason for o in rejected)
+    elif isinstance(fact, dict):
+        counts = Counter({str(k): int(v) for k, v in fact.items() if int(v) > 0})
+    else:
+        return {}
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def _run_facts(
+    facts: dict[str, Any],
+    trees: Sequence[MapTree],
+    path: Sequence[tuple[float, float]],
+    rejected: dict[str, int],
+    seen: int | None,
+) -> list[tuple[str, str]]:
+    found = [t for t in trees if t.status == "found"]
+    shown: list[tuple[str, str]] = []
+
+    def add(label: str, value: Any) -> None:
+        if value is not None and value != "":
+            shown.append((label, str(value)))
+
+    add("recording", facts.get("input"))
+    add("surveyed (UTC)", _when(seen))
+    add("software", facts.get("software"))
+    add("trait method", facts.get("traits") or facts.get("method"))
+    add("LiDAR scans", facts.get("scans"))
+    add("trees found", len(found))
+    field_map = facts.get("field_map")
+    on_map = field_map.get("trees") if isinstance(field_map, dict) else None
+    matched = sum(t.field_id is not None for t in found)
+    add("matched to the field map", f"{matched} of {on_map}" if on_map else matched)
+    add("missing (field-map trees passed, not found)", sum(t.status == "missing" for t in trees))
+    add("objects rejected (not trees)", sum(rejected.values()))
+    add("positions", _position_fact(facts))
+    add("GNSS fixes", facts.get("fixes"))
+    if path:
+        add("path driven (m)", f"{_path_length(path):.0f}")
+    if "data_loss" in facts:
+        damaged = "damaged or cut: read as far as it went"
+        add("recording read", damaged if facts["data_loss"] else "whole")
+    return shown
+
+
+def _when(ns: int | None) -> str | None:
+    if ns is None:
+        return None
+    return dt.datetime.fromtimestamp(ns / 1e9, tz=dt.timezone.utc).strftime("%Y-%m-%d %H:%M")
+
+
+def _position_fact(facts: dict[str, Any]) -> str:
+    """Where the run's positions are: a UTM zone, else the local frame and why."""
+    if zone := facts.get("utm_zone"):
+        return f"UTM zone {zone} (m)"
+    frame = facts.get("world_frame") or "odom"
+    local = "local frame only (wheel odometry)" if frame == "odom" else f"{frame} frame only"
+    return f"{local}: no GNSS fix" if not facts.get("fixes") else local
+
+
+def _path_length(path: Sequence[tuple[float, float]]) -> float:
+    return sum(math.dist(a, b) for a, b in itertools.pairwise(path))
+
+
+def _run_notes(facts: dict[str, Any], trees: Sequence[MapTree]) -> list[str]:
+    """What the page must say for its map and names to be read right."""
+    notes = []
+    found = [t for t in trees if t.status == "found"]
+    unplaced = [t for t in found if t.easting is None]
+    if not facts.get("utm_zone") and facts.get("world_frame") != "utm":
+        fixes = facts.get("fixes")
+        why = f"This run never placed itself in UTM ({fixes} GNSS fixes)" if fixes else ""
+        frame = facts.get("world_frame") or "odom"
+        local = "wheel odometry from where the robot started" if frame == "odom" else frame
+        notes.append(
+            f"{why or 'This run had no GNSS fix'}: its trees were mapped in the robot's local "
+            f"frame ({local}) and have no UTM position, so no map of the block is drawn and "
+            "none could be matched to the field map. They are listed below under the run's "
+            "ids, with their traits."
+        )
+    elif unplaced:
+        notes.append(
+            f"{len(unplaced)} of {len(found)} trees have no UTM position (seen only while the "
+            "run had no GNSS fix): they are listed below but not on the map."
+        )
+    if any(t.field_id is None for t in found):
+        notes.append(
+            f"Names starting with {RUN_ID_MARK} ({RUN_ID_MARK}4) are the run's own ids, for "
+            "trees not matched to a field-map tree; the others are the field map's ids."
+        )
+    return notes
+
+
+# --- a season ------------------------------------------------------------------------
 
 
 def _season_data(path: Path) -> ReportData:
@@ -147,11 +381,12 @@ def _season_data(path: Path) -> ReportData:
         raise SourceError(str(exc)) from None
     shown: list[MapTree] = []
     for t in trees:
-        if t.easting is None or not t.visits:
+        if not t.visits:
             continue
         g = growth(t)
         shown.append(
             MapTree(
+                t.tree_id,
                 t.tree_id,
                 t.row,
                 t.easting,
@@ -164,17 +399,7 @@ def _season_data(path: Path) -> ReportData:
             )
         )
     ranked = sorted(trees, key=lambda t: (-sum(v.status == "found" for v in t.visits), t.tree_id))
-    histories = [
-        History(
-            t.tree_id,
-            [iso_utc(v.t_start) for v in t.visits if v.status == "found"],
-            [v.t_start for v in t.visits if v.status == "found"],
-            [v.width_m for v in t.visits if v.status == "found"],
-            [v.height_m for v in t.visits if v.status == "found"],
-            [v.ndvi for v in t.visits if v.status == "found"],
-        )
-        for t in ranked[:HISTORY_TREES]
-    ]
+    histories = [_history(t) for t in ranked[:HISTORY_TREES]]
     # The robot's paths: every survey's, from its run directory when it is still there.
     paths: list[tuple[float, float]] = []
     for s in surveys:
@@ -183,161 +408,60 @@ def _season_data(path: Path) -> ReportData:
             with contextlib.suppress(SourceError):
                 paths.extend(_run_data(store, store.parent).path)
     blocks = sorted({t.block for t in trees})
+    dates = [iso_utc(s.t_start)[:10] for s in surveys]
+    rows = [_survey_row(s) for s in surveys]
+    rejected: Counter = Counter()
+    for row in rows:
+        rejected.update(row.rejected)
     return ReportData(
-        title=f"Season {path.stem}",
+        title=page_title("Season", path.stem, dates),
         source=str(path),
         kind="season",
         trees=shown,
         path=paths,
         facts=[
             ("surveys", str(len(surveys))),
+            ("survey dates (UTC)", ", ".join(sorted(set(dates))) or "-"),
             ("trees", str(len(trees))),
             ("blocks", ", ".join(blocks) or "-"),
             ("missing in their last survey", str(sum(t.status == "missing" for t in shown))),
+            ("objects rejected (not trees), all surveys", str(sum(rejected.values()))),
         ],
         histories=histories,
-        surveys=[
-            (iso_utc(s.t_start), s.recording, "damaged" if s.data_loss else "ok") for s in surveys
-        ],
+        surveys=rows,
+        survey_times=[s.t_start for s in surveys],
+        rejected_counts=dict(sorted(rejected.items(), key=lambda kv: (-kv[1], kv[0]))),
     )
 
 
-# --- drawing -----------------------------------------------------------------------------
+def _history(tree: SeasonTree) -> History:
+    found = [v for v in tree.visits if v.status == "found"]
+    return History(
+        tree.tree_id,
+        tree.tree_id,
+        [iso_utc(v.t_start) for v in found],
+        [v.t_start for v in found],
+        [v.width_m for v in found],
+        [v.height_m for v in found],
+        [v.ndvi for v in found],
+    )
 
 
-def _figure(width: float = 8.0, height: float = 5.5):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width, height), dpi=100)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _png(fig) -> str:
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", bbox_inches="tight")
-    return base64.b64encode(buffer.getvalue()).decode("ascii")
-
-
-def draw_map(data: ReportData, colour: str = "height", growth: bool = False) -> str:
-    """The block from above, metres from its south-west corner: each found tree a disc of
-    its width coloured by `colour` (or by width change per 30 days with `growth`), missing
-    trees as red crosses, the robot's path as a grey line. A base64 PNG."""
-    from matplotlib.collections import PatchCollection
-    from matplotlib.patches import Circle
-
-    fig = _figure()
-    ax = fig.add_subplot()
-    points = [(t.easting, t.northing) for t in data.trees] + list(data.path)
-    e0 = min((p[0] for p in points), default=0.0)
-    n0 = min((p[1] for p in points), default=0.0)
-    if data.path:
-        ax.plot(
-            [p[0] - e0 for p in data.path],
-            [p[1] - n0 for p in data.path],
-            color="0.6",
-            lw=1.2,
-            label="robot path",
-            zorder=1,
-        )
-    found = [t for t in data.trees if t.status == "found"]
-    if growth:
-        values, label, cmap = (
-            [t.width_change for t in found],
-            "width change (m / 30 days)",
-            "RdYlGn",
-        )
-    elif colour == "ndvi":
-        values, label, cmap = [t.ndvi for t in found], "NDVI", "RdYlGn"
-    else:
-        values, label, cmap = [t.height_m for t in found], "height (m)", "viridis"
-    circles = [
-        Circle((t.easting - e0, t.northing - n0), max((t.width_m or 0.3) / 2, 0.15)) for t in found
-    ]
-    if circles:
-        known = [v for v in values if v is not None]
-        collection = PatchCollection(circles, cmap=cmap, edgecolor="k", linewidth=0.6, zorder=2)
-        collection.set_array([math.nan if v is None else v for v in values])
-        if known:
-            low, high = min(known), max(known)
-            if growth:
-                bound = max(abs(low), abs(high), 1e-3)
-                low, high = -bound, bound
-            collection.set_clim(low, high if high > low else low + 1e-3)
-        ax.add_collection(collection)
-        fig.colorbar(collection, ax=ax, label=label if known else f"{label}: not measured")
-        for t in found:
-            ax.annotate(
-                t.tree_id,
-                (t.easting - e0, t.northing - n0),
-                fontsize=7,
-                ha="center",
-                va="center",
-                zorder=3,
-            )
-    missing = [t for t in data.trees if t.status == "missing"]
-    if missing:
-        ax.scatter(
-            [t.easting - e0 for t in missing],
-            [t.northing - n0 for t in missing],
-            marker="x",
-            s=80,
-            color="red",
-            linewidths=2,
-            label="missing",
-            zorder=3,
-        )
-    ax.set_aspect("equal")
-    ax.autoscale_view()
-    ax.margins(0.08)
-    ax.set_xlabel(f"easting − {e0:.0f} (m)")
-    ax.set_ylabel(f"northing − {n0:.0f} (m)")
-    ax.grid(alpha=0.3)
-    if data.path or missing:
-        ax.legend(loc="best", fontsize=8)
-    ax.set_title("Width change per 30 days" if growth else f"Trees by {label}")
-    return _png(fig)
+def _survey_row(survey: Survey) -> SurveyRow:
+    summary = survey.summary
+    rejected = summary.get("rejected")
+    return SurveyRow(
+        iso_utc(survey.t_start),
+        survey.block,
+        survey.recording,
+        summary.get("trees"),
+        summary.get("missing"),
+        {str(k): int(v) for k, v in rejected.items()} if isinstance(rejected, dict) else {},
+        survey.data_loss,
+    )
 
 
-def draw_histograms(trees: Sequence[MapTree]) -> str:
-    fig = _figure(10, 3.2)
-    found = [t for t in trees if t.status == "found"]
-    for i, (name, unit) in enumerate((("width_m", "m"), ("height_m", "m"), ("ndvi", ""))):
-        ax = fig.add_subplot(1, 3, i + 1)
-        values = [getattr(t, name) for t in found if getattr(t, name) is not None]
-        title = name.replace("_m", "").upper() if name == "ndvi" else name.replace("_m", "")
-        if values:
-            ax.hist(values, bins=min(12, max(3, len(values))), color="tab:green", edgecolor="k")
-        else:
-            ax.text(0.5, 0.5, "not measured", ha="center", va="center", transform=ax.transAxes)
-        ax.set_xlabel(f"{title} ({unit})" if unit else title)
-        ax.set_ylabel("trees")
-    fig.tight_layout()
-    return _png(fig)
-
-
-def draw_histories(histories: Sequence[History]) -> str:
-    import datetime as dt
-
-    fig = _figure(10, 3.2)
-    for i, (name, label) in enumerate(
-        (("width_m", "width (m)"), ("height_m", "height (m)"), ("ndvi", "NDVI"))
-    ):
-        ax = fig.add_subplot(1, 3, i + 1)
-        for h in histories:
-            pairs = [
-                (t, v) for t, v in zip(h.times_ns, getattr(h, name), strict=True) if v is not None
-            ]
-            if pairs:
-                days = [dt.datetime.fromtimestamp(t / 1e9, tz=dt.timezone.utc) for t, _ in pairs]
-                ax.plot(days, [v for _, v in pairs], marker="o", label=h.tree_id)
-        ax.set_ylabel(label)
-        ax.tick_params(axis="x", labelrotation=30, labelsize=7)
-        if i == 0 and histories:
-            ax.legend(fontsize=7)
-    fig.tight_layout()
-    return _png(fig)
+# --- the page ------------------------------------------------------------------------
 
 
 def row_table(trees: Sequence[MapTree]) -> list[dict]:
@@ -352,7 +476,7 @@ def row_table(trees: Sequence[MapTree]) -> list[dict]:
         return sum(values) / len(values) if values else None
 
     table = []
-    for row in sorted(rows, key=lambda r: (r == "-", r)):
+    for row in sorted(rows, key=lambda r: (r == "-", _natural(r))):
         found = [t for t in rows[row] if t.status == "found"]
         table.append(
             {
@@ -373,13 +497,16 @@ h1 { font-size: 1.5em; } h2 { font-size: 1.15em; margin-top: 1.6em; }
 table { border-collapse: collapse; margin: 0.5em 0; }
 th, td { border: 1px solid #bbb; padding: 0.25em 0.7em; text-align: right; }
 th { background: #eef3ea; } td:first-child, th:first-child { text-align: left; }
-img { max-width: 100%; border: 1px solid #ddd; }
+svg.figure { max-width: 100%; height: auto; border: 1px solid #ddd; display: block; }
 .facts td { text-align: left; }
+.note { background: #fff4d6; border-left: 4px solid #d9a400; padding: 0.5em 0.8em; }
 """
 
 
 def render_html(data: ReportData, colour: str = "height") -> str:
     """The page as one string."""
+    from treetraits.season import figures
+
     e = html.escape
     parts = [
         "<!DOCTYPE html>",
@@ -389,11 +516,13 @@ def render_html(data: ReportData, colour: str = "height") -> str:
         '<table class="facts">',
         *(f"<tr><th>{e(k)}</th><td>{e(v)}</td></tr>" for k, v in data.facts),
         "</table>",
+        *(f'<p class="note">{e(note)}</p>' for note in data.notes),
         "<h2>Map of the block</h2>",
-        _img(draw_map(data, colour), "map of the block"),
+        figures.draw_map(data, colour)
+        or "<p>No map: nothing in this run has a UTM position (see the note above).</p>",
         "<h2>Per row</h2>",
         _table(
-            ["row", "found", "missing", "mean width (m)", "mean height (m)", "mean NDVI"],
+            ["row", "trees found", "missing", "mean width (m)", "mean height (m)", "mean NDVI"],
             [
                 [
                     r["row"],
@@ -407,43 +536,127 @@ def render_html(data: ReportData, colour: str = "height") -> str:
             ],
         ),
         "<h2>Distributions</h2>",
-        _img(draw_histograms(data.trees), "histograms of width, height and NDVI"),
+        figures.draw_histograms(data.trees),
     ]
     if data.kind == "season":
-        parts += [
-            "<h2>Growth</h2>",
-            _img(draw_map(data, growth=True), "growth map"),
-            "<h2>A few trees over the season</h2>",
-            _img(draw_histories(data.histories), "time series of trees"),
-            "<h2>Surveys</h2>",
-            _table(["date", "recording", "read"], [list(s) for s in data.surveys]),
-        ]
-    parts.append(
-        "<h2>Trees</h2>"
-        + _table(
-            ["tree", "row", "status", "width (m)", "height (m)", "NDVI"],
-            [
-                [t.tree_id, t.row or "-", t.status, _f(t.width_m), _height(t), _f(t.ndvi)]
-                for t in data.trees
-            ],
-        )
-    )
-    if any(t.height_top_seen is False for t in data.trees):
-        parts.append(
-            "<p><small>&gt;2.55: a lower bound; the crown's top was above the LiDAR's "
-            "view in every scan.</small></p>"
-        )
+        parts += _season_sections(data)
+    parts += _rejected_section(data)
+    parts += _trees_section(data)
     parts.append(f"<p><small>source: {e(data.source)}</small></p></body></html>")
     return "\n".join(parts) + "\n"
+
+
+def _season_sections(data: ReportData) -> list[str]:
+    from treetraits.season import figures
+
+    if not data.survey_times:  # every recording failed: nothing to draw over time
+        return ["<h2>Surveys</h2>", "<p>No survey in this season yet.</p>"]
+    return [
+        "<h2>Growth</h2>",
+        *(f'<p class="note">{html.escape(n)}</p>' for n in _growth_notes(data.survey_times)),
+        figures.draw_map(data, growth=True) or "",
+        "<h2>A few trees over the season</h2>",
+        figures.draw_histories(data.histories, data.survey_times),
+        "<h2>Surveys</h2>",
+        _table(
+            ["date (UTC)", "block", "recording", "trees found", "missing", "rejected", "read"],
+            [
+                [
+                    _when_iso(s.date),
+                    s.block,
+                    s.recording,
+                    _count(s.found),
+                    _count(s.missing),
+                    _reasons(s.rejected) or "0",
+                    "damaged or cut" if s.damaged else "whole",
+                ]
+                for s in data.surveys
+            ],
+        ),
+    ]
+
+
+def _growth_notes(times_ns: Sequence[int]) -> list[str]:
+    """Why the growth map may say little: growth per 30 days from surveys days apart is
+    the drives' own scatter scaled up (a 3 cm difference a day apart is 0.9 m / 30 days)."""
+    days = (max(times_ns) - min(times_ns)) / 86400e9
+    if days < 0.5:
+        return ["All the surveys are on one day: no change can be measured yet."]
+    if days < GROWTH_MIN_DAYS:
+        return [
+            f"The surveys span {days:.1f} days: a change per 30 days over so short a span is "
+            "mostly the measurement's scatter from one drive to the next, scaled up."
+        ]
+    return []
+
+
+def _rejected_section(data: ReportData) -> list[str]:
+    """How many objects were taken for trees at first and rejected, and why."""
+    total = sum(data.rejected_counts.values())
+    if not total:
+        return []
+    e = html.escape
+    where = "over the season's surveys " if data.kind == "season" else ""
+    parts = [
+        "<h2>Objects that are not trees</h2>",
+        f'<p class="note">{total} object{"s" if total != 1 else ""} '
+        f"seen {where}as often as a tree {'were' if total != 1 else 'was'} rejected: "
+        f"{e(_reasons(data.rejected_counts))}.</p>",
+        "<ul>",
+        *(
+            f"<li><b>{e(_reason_name(r))}</b>: {e(REASON_TEXT.get(r, r))}</li>"
+            for r in data.rejected_counts
+        ),
+        "</ul>",
+    ]
+    if data.rejected:  # a run's: each object from its store, with its cues
+        parts.append(_rejected_table(data.rejected))
+    return parts
+
+
+def _rejected_table(rejected: Sequence[RejectedObject]) -> str:
+    header = ["object (run id)", "reason", "width (m)", "height (m)", "NDVI", "scans"]
+    header += ["vegetation evidence", "texture (m)", "planar share", "intensity"]
+    return _table(header, [_rejected_row(o) for o in rejected])
+
+
+def _rejected_row(o: RejectedObject) -> list[str]:
+    return [
+        o.object_id,
+        _reason_name(o.reason),
+        _f(o.width_m),
+        _f(o.height_m),
+        _f(o.ndvi),
+        _count(o.observations),
+        _f(o.evidence),
+        _f(o.texture_m, 3),
+        _f(o.planar_share),
+        _f(o.intensity, 0),
+    ]
+
+
+def _trees_section(data: ReportData) -> list[str]:
+    if data.kind == "season":
+        header = ["tree", "row", "last status", "width (m)", "height (m)", "NDVI"]
+        header.append("width change (m / 30 days)")
+        rows = [
+            [t.label, t.row or "-", t.status, *_traits(t), _f(t.width_change)] for t in data.trees
+        ]
+    else:
+        header = ["tree", "run id", "row", "status", "width (m)", "height (m)", "NDVI"]
+        rows = [[t.label, t.run_id or "-", t.row or "-", t.status, *_traits(t)] for t in data.trees]
+    parts = ["<h2>Trees</h2>", _table(header, rows)]
+    if any(t.height_top_seen is False for t in data.trees):
+        parts.append(
+            "<p><small>&gt;2.55 m: a lower bound; the crown's top was above the LiDAR's "
+            "view in every scan.</small></p>"
+        )
+    return parts
 
 
 def write_report(path: Path, data: ReportData, colour: str = "height") -> None:
     page = render_html(data, colour)
     write_atomically(path, lambda f: f.write(page), permissions=0o644)
-
-
-def _img(png_base64: str, alt: str) -> str:
-    return f'<p><img alt="{html.escape(alt)}" src="data:image/png;base64,{png_base64}"></p>'
 
 
 def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
@@ -454,7 +667,32 @@ def _table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
 
 
 def _f(value: float | None, digits: int = 2) -> str:
-    return "-" if value is None else f"{value:.{digits}f}"
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    text = f"{value:.{digits}f}"
+    return text[1:] if text.startswith("-") and float(text) == 0 else text  # not "-0.00"
+
+
+def _count(value: int | None) -> str:
+    return "-" if value is None else str(value)
+
+
+def _when_iso(iso: str) -> str:
+    """2026-05-12T17:00:00.000Z as 2026-05-12 17:00."""
+    return iso[:16].replace("T", " ")
+
+
+def _reason_name(reason: str) -> str:
+    return reason.replace("_", " ")
+
+
+def _reasons(counts: dict[str, int]) -> str:
+    """ "5 thin, 2 low": objects per reason, the commonest first."""
+    return ", ".join(f"{n} {_reason_name(r)}" for r, n in counts.items())
+
+
+def _traits(tree: MapTree) -> list[str]:
+    return [_f(tree.width_m), _height(tree), _f(tree.ndvi)]
 
 
 def _height(tree: MapTree) -> str:
