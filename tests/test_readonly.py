@@ -6,13 +6,14 @@ tests/cli/test_rules.py."""
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 import sqlite3
+import sys
 from pathlib import Path
 
 import pytest
 
+from tests.helpers.readonly import run_read_only
 from tests.helpers.season import small_season
 from treetraits.errors import EXIT_IO, EXIT_USAGE
 from treetraits.readonly import (
@@ -51,12 +52,23 @@ def test_a_store_being_written_is_read_through_its_wal(tmp_path):
         assert _rows(store) == [("T9",), ("pos-1",), ("pos-2",)]
 
 
+# Run in a process of its own with the store's directory read-only (tests/helpers/
+# readonly.py): what it reads, or the error it is refused with.
+_READ = """
+import contextlib, sys
+from treetraits.readonly import connect_read_only, StoreReadError
+try:
+    with contextlib.closing(connect_read_only(sys.argv[1])) as db:
+        print(*(r[0] for r in db.execute("SELECT tree_id FROM trees ORDER BY tree_id")))
+except StoreReadError as exc:
+    print(f"{type(exc).__name__} {exc.exit_code} {exc}")
+"""
+
+
 def test_changes_that_cannot_be_read_on_a_read_only_disk_are_refused_naming_the_file(tmp_path):
-    """A store copied with its -wal of changes but no -shm, in a directory that may not
-    be written: SQLite cannot read the changes there, so the store is refused in one line
-    rather than read without them. (Root may write anywhere: only the rule is checked.)"""
-    if os.geteuid() == 0:
-        pytest.skip("root may write a directory without write permission")
+    """A store copied with its -wal of changes but no -shm onto a read-only disk: SQLite
+    cannot read the changes there, so the store is refused in one line rather than read
+    without them."""
     (tmp_path / "live").mkdir()
     live = small_season(tmp_path / "live" / "season.sqlite")
     copy = tmp_path / "copy"
@@ -67,29 +79,21 @@ def test_changes_that_cannot_be_read_on_a_read_only_disk_are_refused_naming_the_
         writer.execute("UPDATE trees SET tree_id = 'T9' WHERE tree_id = 'pos-3'")
         for name in ("season.sqlite", "season.sqlite-wal"):
             shutil.copy(live.parent / name, copy / name)
-    copy.chmod(0o555)
-    try:
-        with pytest.raises(StoreReadError, match="holds changes not yet in the store") as error:
-            connect_read_only(copy / "season.sqlite")
-        assert str(error.value).startswith(f"{copy / 'season.sqlite'}: ")
-        assert error.value.exit_code == EXIT_IO
-    finally:
-        copy.chmod(0o755)
+    store = copy / "season.sqlite"
+    result = run_read_only(copy, [sys.executable, "-c", _READ, str(store)])
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith(f"StoreReadError {EXIT_IO} {store}: "), result.stdout
+    assert "holds changes not yet in the store" in result.stdout
+    assert sorted(p.name for p in copy.iterdir()) == ["season.sqlite", "season.sqlite-wal"]
 
 
-def test_a_store_in_a_directory_without_write_permission_reads(tmp_path):
-    """Not root: a directory without write permission (root writes it all the same, so
-    there the read-only bind mount of tests/cli/test_rules.py stands in)."""
-    if os.geteuid() == 0:
-        pytest.skip("root may write a directory without write permission")
+def test_a_store_in_a_directory_that_may_not_be_written_reads(tmp_path):
     folder = tmp_path / "ro"
     folder.mkdir()
     store = small_season(folder / "season.sqlite")
-    folder.chmod(0o555)
-    try:
-        assert _rows(store) == [("pos-1",), ("pos-2",), ("pos-3",)]
-    finally:
-        folder.chmod(0o755)
+    result = run_read_only(folder, [sys.executable, "-c", _READ, str(store)])
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["pos-1", "pos-2", "pos-3"]
     assert sorted(p.name for p in folder.iterdir()) == ["season.sqlite"]
 
 

@@ -16,12 +16,16 @@ TIMEOUT_S = 300  # a command's imports and work on a loaded 2-core machine
 
 
 def run_with_read_only(directory: Path, argv: list[str]) -> subprocess.CompletedProcess:
-    """`python -m treetraits ARGV` with `directory` read-only for it. Not root: the
-    directory's write bits are taken away (and given back). Root writes whatever the mode
-    says, so there the directory is a read-only bind mount in a mount namespace of the
-    command's own (`unshare`), a real read-only file system that nothing else sees;
-    skipped where the machine refuses that."""
-    command = [sys.executable, "-m", "treetraits", *argv]
+    """`python -m treetraits ARGV` with `directory` read-only for it (`run_read_only`)."""
+    return run_read_only(directory, [sys.executable, "-m", "treetraits", *argv])
+
+
+def run_read_only(directory: Path, command: list[str]) -> subprocess.CompletedProcess:
+    """`command` with `directory` read-only for it. Not root: the directory's write bits
+    are taken away (and given back). Root writes whatever the mode says, so there the
+    directory is a read-only bind mount in a mount namespace of the command's own
+    (`unshare`), a real read-only file system that nothing else sees; skipped where the
+    machine refuses that."""
     if os.geteuid() != 0:
         mode = directory.stat().st_mode
         directory.chmod(0o555)
