@@ -18,6 +18,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from tests.helpers.captures import decode_file
+from tests.helpers.paths import FIXTURES
 from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
 from treetraits.drivers.calibration import load_calibration
@@ -27,6 +28,10 @@ from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.sim.run import SurveySettings
 
 CLI = [sys.executable, "-m", "treetraits"]
+# A real LiDAR-only capture (no GNSS, camera or wheels): a VLP-16 on its side in an apple
+# orchard, with its calibration (tests/fixtures/real_orchard/PROVENANCE.md).
+CAPTURE = FIXTURES / "real_orchard" / "lfuji_apple_vlp16_sideways_2s.pcap"
+CAPTURE_CALIBRATION = FIXTURES / "real_orchard" / "lfuji_sideways_calibration.json"
 EXPECTED_SCHEMAS = {
     "/lidar/points": "foxglove.PointCloud",
     "/pose": "foxglove.PoseInFrame",
@@ -168,10 +173,16 @@ def test_camera_fixes_and_frames_follow_the_recording(survey):
     assert [(f.latitude, f.longitude) for f in fixes] == [(e.lat, e.lon) for e in expected]
     assert fixes[0].position_covariance_type in (0, 2)
 
-    # Frames: map -> base_link at every pose; base_link -> lidar and lidar -> camera fixed.
+    # Frames: map -> base_link at every pose; base_link -> lidar, base_link -> gnss and
+    # lidar -> camera fixed.
     tf = [m for _, m in messages["/tf"]]
     pairs = {(t.parent_frame_id, t.child_frame_id) for t in tf}
-    assert pairs == {("map", "base_link"), ("base_link", "lidar"), ("lidar", "camera")}
+    assert pairs == {
+        ("map", "base_link"),
+        ("base_link", "lidar"),
+        ("base_link", "gnss"),
+        ("lidar", "camera"),
+    }
     calibration = load_calibration(rec.read_recording(twin.recording).metadata.calibration)
     (lidar,) = [t for t in tf if t.child_frame_id == "lidar"]
     translation = [lidar.translation.x, lidar.translation.y, lidar.translation.z]
@@ -242,3 +253,116 @@ def test_bad_inputs_are_one_line_and_nothing_is_written(survey, tmp_path):
     exists = cli("export", "foxglove", str(bad), "--out", str(view))
     assert exists.returncode == 4 and "--force" in exists.stderr
     assert view.read_bytes() == before
+
+
+def lidar_only_recording(recording: Path, out: Path) -> None:
+    """`recording` without its GNSS, camera and wheels: the LiDAR's channels alone."""
+    keep = {rec.LIDAR_PACKETS, rec.LIDAR_TELEMETRY}
+    with rec.read_recording(recording) as source:
+        calibration = source.metadata.calibration
+        with rec.RecordingWriter(out, calibration=calibration) as sink:
+            for m in source:
+                if m.topic in keep:
+                    sink.write(m.topic, m.data, m.log_time, m.publish_time)
+
+
+@pytest.fixture(scope="module")
+def views(survey, tmp_path_factory):
+    """name -> (view, report, calibration): the twin as recorded, the twin's LiDAR alone,
+    and a real LiDAR-only capture."""
+    twin, _, _, view, report = survey
+    root = tmp_path_factory.mktemp("lidar_only")
+    recorded = load_calibration(rec.read_recording(twin.recording).metadata.calibration)
+    out = {"twin": (view, report, recorded)}
+    lidar_only_recording(twin.recording, root / "lidar.mcap")
+    for name, source, calibration in (
+        ("twin_lidar_only", root / "lidar.mcap", None),
+        ("vlp16_capture", CAPTURE, CAPTURE_CALIBRATION),
+    ):
+        target = root / f"{name}.view.mcap"
+        extra = ["--calibration", str(calibration)] if calibration else []
+        result = cli("export", "foxglove", str(source), "--out", str(target), "--json", *extra)
+        assert result.returncode == 0, result.stderr
+        used = load_calibration(calibration) if calibration else recorded
+        out[name] = (target, json.loads(result.stdout), used)
+    return out
+
+
+def path_to_map(frame: str, parents: dict[str, str]) -> list[str]:
+    """The frames from `frame` up to `map`, through the transforms' parents."""
+    path = [frame]
+    while path[-1] != "map":
+        assert path[-1] in parents, f"{frame}: no transform leads from {path[-1]} towards map"
+        path.append(parents[path[-1]])
+        assert len(path) <= len(parents) + 1, f"{frame}: the transforms loop"
+    return path
+
+
+def matrix_of(transform) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    r, p = transform.rotation, transform.translation
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix()
+    out[:3, 3] = (p.x, p.y, p.z)
+    return out
+
+
+@pytest.mark.parametrize("name", ["twin", "twin_lidar_only", "vlp16_capture"])
+def test_every_frame_id_reaches_map_through_tf(views, name):
+    view, report, _ = views[name]
+    messages = read_view(view)
+    tf = messages["/tf"]
+    # /tf in time order, each transform stamped with its log time.
+    times = [m.log_time for m, _ in tf]
+    assert times == sorted(times)
+    assert all(t.timestamp.ToNanoseconds() == m.log_time for m, t in tf)
+    # The sensors' frames come first, with the first message of the view.
+    first = min(m.log_time for topic in messages.values() for m, _ in topic)
+    assert tf[0][0].log_time == first
+    assert tf[0][1].child_frame_id == "lidar"
+    # A tree: one parent per frame, and map the root.
+    parents: dict[str, str] = {}
+    for _, t in tf:
+        assert parents.setdefault(t.child_frame_id, t.parent_frame_id) == t.parent_frame_id
+    assert "map" not in parents
+    used = set()
+    for topic, pairs in messages.items():
+        for _, m in pairs:
+            if topic == "/trees":
+                used.update(e.frame_id for e in m.entities)
+            elif topic != "/tf":
+                used.add(m.frame_id)
+    for frame in used | set(parents):
+        path_to_map(frame, parents)
+    # Every scan is placed by map -> base_link at its own time.
+    placed = {t.timestamp.ToNanoseconds() for _, t in tf if t.child_frame_id == "base_link"}
+    clouds = [c.timestamp.ToNanoseconds() for _, c in messages["/lidar/points"]]
+    assert clouds and set(clouds) <= placed
+    assert report["scans"] == len(clouds)
+
+
+@pytest.mark.parametrize("name", ["twin_lidar_only", "vlp16_capture"])
+def test_without_poses_map_is_the_robot_where_the_replay_holds_it(views, name):
+    view, report, calibration = views[name]
+    messages = read_view(view)
+    assert set(messages) == {"/tf", "/lidar/points", "/trees"}  # nothing else recorded
+    # The replay maps without poses in the LiDAR frame, standing still: map is the
+    # robot's base there (upright, ground at z = 0), base_link stays on it.
+    assert report["world_frame"] == "lidar" and report["origin"] is None
+    T_base_lidar = np.asarray(calibration.T_base_lidar, dtype=float)
+    assert np.allclose(np.reshape(report["map_from_world"], (4, 4)), T_base_lidar)
+    tf = [t for _, t in messages["/tf"]]
+    bases = [t for t in tf if t.child_frame_id == "base_link"]
+    assert len(bases) == report["scans"]
+    assert all(np.allclose(matrix_of(t), np.eye(4)) for t in bases)
+    (lidar,) = [t for t in tf if t.child_frame_id == "lidar"]
+    assert np.allclose(matrix_of(lidar), T_base_lidar, atol=1e-9)
+    (update,) = [m for _, m in messages["/trees"]]
+    assert len(update.entities) == report["trees"] >= 1
+    with open(view, "rb") as f:
+        (meta,) = [
+            m.metadata for m in make_reader(f).iter_metadata() if m.name == "treetraits-export"
+        ]
+    assert meta["world_frame"] == "lidar"
+    assert np.allclose(np.reshape(json.loads(meta["map_from_world"]), (4, 4)), T_base_lidar)
