@@ -27,6 +27,7 @@ from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
 from treetraits.export.foxglove import POINT_STEP_M, point_cloud
+from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.run import SurveySettings
 
 CLI = [sys.executable, "-m", "treetraits"]
@@ -409,3 +410,34 @@ def test_the_points_decode_to_the_scans_within_the_quantisation_step(survey, vie
             for axis in ("x", "y", "z"):
                 steps = rows[axis] / np.float32(POINT_STEP_M)
                 assert np.array_equal(steps, np.round(steps))
+
+
+def test_a_late_first_fix_keeps_map_where_the_run_began(tmp_path):
+    """No fix for the first 14 s: the run maps in odom, then moves its whole map to UTM
+    (tests/service/test_replay.py, the same twin). map stays where the run began: the
+    poses after the move are taken back into odom (before: they jumped 3,787 km to their
+    UTM coordinates), and the trees, in UTM at the end, come back through map_from_world."""
+    survey = twin_survey(
+        SurveySettings(goal=16.0, seed=4, gnss=GnssSettings(outages=((0.0, 14.0),)))
+    )
+    view = tmp_path / "view.mcap"
+    result = cli("export", "foxglove", str(survey.recording), "--out", str(view), "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    messages = read_view(view)
+    path = np.array([(p.pose.position.x, p.pose.position.y) for _, p in messages["/pose"]])
+    assert len(path) == report["scans"] > 100
+    steps = np.hypot(*np.diff(path, axis=0).T)
+    assert steps.max() < 0.2  # 0.5 m/s, 10 scans a second, and the fix's correction
+    assert np.hypot(*(path[-1] - path[0])) > 10  # and it drove
+    assert report["world_frame"] == "utm"  # where the mapper ended with the trees
+    map_from_utm = np.reshape(report["map_from_world"], (4, 4))
+    utm_from_map = np.linalg.inv(map_from_utm)
+    with open(survey.truth_csv, newline="") as f:
+        truth = [(float(r["easting"]), float(r["northing"])) for r in csv.DictReader(f)]
+    (update,) = [m for _, m in messages["/trees"]]
+    assert len(update.entities) == report["trees"] >= 4
+    for e in update.entities:
+        c = e.cylinders[0].pose.position
+        east, north, _ = utm_from_map[:3, :3] @ (c.x, c.y, 0.0) + utm_from_map[:3, 3]
+        assert min(math.hypot(east - x, north - y) for x, y in truth) < 0.5

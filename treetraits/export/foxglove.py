@@ -10,7 +10,8 @@ Frames (`/tf`), whatever sensors the recording has, so that every message's fram
 reaches `map`:
 
 - `map`: with poses (GNSS, wheels), the run's world frame (`utm` or `odom`) moved to the
-  first posed scan (so that Foxglove's float32 scene keeps centimetres); without any, the
+  first posed scan (so that Foxglove's float32 scene keeps centimetres; a run moved from
+  `odom` to `utm` at a late first fix keeps it where it began); without any, the
   frame the replay maps in, which stands still (no motion is given to the mapper): the
   robot's base_link where it stood, z up on its ground. `map_from_world` (and the origin
   of a posed run) is in the metadata record `treetraits-export`;
@@ -26,9 +27,9 @@ import json
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,6 +43,10 @@ from treetraits.errors import ConfigError, OutputExistsError, ParseError, Source
 from treetraits.files import write_atomically
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.localization.pose import Pose
+from treetraits.pipeline.localization.utm import wrap_angle
+
+if TYPE_CHECKING:
+    from treetraits.service.survey import ScanOutcome, SurveyProcessor
 
 MAP_FRAME = "map"
 BASE_FRAME = "base_link"
@@ -293,6 +298,25 @@ def unposed_map(world: str, calibration: Calibration) -> MapFrame:
     return MapFrame(world, np.eye(4))
 
 
+def odom_pose(pose: Pose, utm_from_odom: np.ndarray) -> Pose:
+    """A `utm` pose in the `odom` frame its run began in, through the 3x3 transform the
+    run's map was moved into `utm` with (`SurveyProcessor.anchor`)."""
+    x, y, _ = np.linalg.solve(utm_from_odom, (pose.x, pose.y, 1.0))
+    yaw = wrap_angle(pose.yaw - math.atan2(utm_from_odom[1, 0], utm_from_odom[0, 0]))
+    return replace(pose, x=float(x), y=float(y), yaw=yaw, frame="odom")
+
+
+def utm_map(where: MapFrame, utm_from_odom: np.ndarray) -> MapFrame:
+    """The `map` of a run begun in `odom`, seen from `utm`, where its trees ended."""
+    utm_from_odom_4 = np.eye(4)
+    utm_from_odom_4[:2, :2] = utm_from_odom[:2, :2]
+    utm_from_odom_4[:2, 3] = utm_from_odom[:2, 2]
+    map_from_utm = where.map_from_world @ np.linalg.inv(utm_from_odom_4)
+    origin = where.origin or (0.0, 0.0)
+    x, y, _ = utm_from_odom @ (origin[0], origin[1], 1.0)
+    return MapFrame("utm", map_from_utm, (float(x), float(y)))
+
+
 def base_in_map(pose: Pose | None, where: MapFrame, t: int) -> Any:
     """map -> base_link at a mapped scan: its pose; without one the robot's base, which
     `map` is (`unposed_map`)."""
@@ -497,7 +521,7 @@ def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progre
     for topic, data, log_time, publish_time in inputs.source.messages:
         view.received(log_time)
         for o in processor.feed(topic, data, log_time, publish_time):
-            view.scan(o, processor.mapper.frame)
+            view.scan(o, processor)
         if topic == rec.CAMERA_JPEG:
             writer.write(IMAGE, compressed_image(bytes(data), publish_time), log_time, publish_time)
         elif topic == rec.GNSS_NMEA:
@@ -507,14 +531,14 @@ def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progre
         if progress:
             progress(len(data))
     for o in processor.finish():
-        view.scan(o, processor.mapper.frame)
+        view.scan(o, processor)
     fixes(epochs.flush())
     trees = [
         t
         for t in processor.mapper.trees()
         if t.observations >= config.output.min_observations and t.kind == TREE
     ]
-    view.finish(trees)
+    view.finish(trees, processor)
 
 
 class _View:
@@ -538,22 +562,33 @@ class _View:
                 self.writer.write(TF, message, log_time, log_time)
         self.last_time = max(self.last_time, log_time)
 
-    def scan(self, o, mapper_frame: str | None) -> None:
+    def scan(self, o: ScanOutcome, processor: SurveyProcessor) -> None:
         t = o.pose.t if o.pose is not None else o.scan.t_host
         self.report.scans += 1
         if self.map is None:
             self.map = (
                 posed_map(o.pose)
                 if o.pose is not None
-                else unposed_map(mapper_frame or LIDAR_FRAME, self.calibration)
+                else unposed_map(processor.mapper.frame or LIDAR_FRAME, self.calibration)
             )
             self.first_scan = t
-        self.writer.write(TF, base_in_map(o.pose, self.map, t), t, t)
-        if o.pose is not None:
-            self.writer.write(POSE, pose_in_map(o.pose, self.map.origin or (0.0, 0.0)), t, t)
-            self.poses.append(o.pose)
+        pose = self.in_map_world(o.pose, processor.anchor)
+        self.writer.write(TF, base_in_map(pose, self.map, t), t, t)
+        if pose is not None:
+            self.writer.write(POSE, pose_in_map(pose, self.map.origin or (0.0, 0.0)), t, t)
+            self.poses.append(pose)
         self.writer.write(POINTS, point_cloud(o.scan, t), t, t)
         self.ndvi(o.frame, t)
+
+    def in_map_world(self, pose: Pose | None, anchor: tuple[int, np.ndarray] | None) -> Pose | None:
+        """A run mapped in `odom` until its first fix goes on in `utm` (its map moved there
+        whole, `SurveyProcessor._reanchor`); `map` stays where it began, in `odom`, so the
+        later poses are taken back there rather than jump to their UTM coordinates."""
+        if pose is None or self.map is None or anchor is None:
+            return pose
+        if (self.map.world, pose.frame) == ("odom", "utm"):
+            return odom_pose(pose, anchor[1])
+        return pose
 
     def ndvi(self, frame: Frame | None, t: int) -> None:
         """The NDVI of the frame a scan used, once per frame: scans faster than the camera
@@ -564,9 +599,11 @@ class _View:
         if (jpeg := ndvi_jpeg(frame, self.calibration)) is not None:
             self.writer.write(NDVI, compressed_image(jpeg, frame.t_capture), t, frame.t_capture)
 
-    def finish(self, trees: list) -> None:
+    def finish(self, trees: list, processor: SurveyProcessor) -> None:
         """The final map and the whole path, shown from the first scan on (Foxglove keeps a
         scene entity until it is replaced, and shows a topic's latest message)."""
+        if self.map is not None and (self.map.world, processor.mapper.frame) == ("odom", "utm"):
+            self.map = utm_map(self.map, processor.anchor[1])  # the trees are in utm now
         if self.map is None:
             # Nothing mapped: `map` is still the robot's base, so that what was written
             # (camera, fixes) reaches it.
