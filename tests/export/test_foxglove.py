@@ -11,6 +11,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -18,15 +19,25 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from tests.helpers.captures import decode_file
+from tests.helpers.paths import FIXTURES
 from tests.helpers.surveys import twin_survey
 from treetraits.drivers import recording as rec
-from treetraits.drivers.calibration import load_calibration
+from treetraits.drivers.calibration import Calibration, load_calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
+from treetraits.export.foxglove import POINT_STEP_M, point_cloud
+from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.run import SurveySettings
 
 CLI = [sys.executable, "-m", "treetraits"]
+# A real LiDAR-only capture (no GNSS, camera or wheels): a VLP-16 on its side in an apple
+# orchard, with its calibration (tests/fixtures/real_orchard/PROVENANCE.md).
+CAPTURE = FIXTURES / "real_orchard" / "lfuji_apple_vlp16_sideways_2s.pcap"
+CAPTURE_CALIBRATION = FIXTURES / "real_orchard" / "lfuji_sideways_calibration.json"
+CLOUD_LAYOUT = np.dtype({"names": ["x", "y", "z", "intensity", "ring"],
+                         "formats": ["<f4", "<f4", "<f4", "u1", "u1"],
+                         "offsets": [0, 4, 8, 12, 13], "itemsize": 14})  # fmt: skip
 EXPECTED_SCHEMAS = {
     "/lidar/points": "foxglove.PointCloud",
     "/pose": "foxglove.PoseInFrame",
@@ -110,9 +121,6 @@ def test_the_scans_are_the_recordings_scans(survey):
     # de-skewed (localization.deskew), each point moved by the robot's motion between its
     # firing and the scan's middle, a few centimetres at the twin's speed.
     assert len(scans) - 2 <= len(clouds) <= len(scans)
-    layout = np.dtype({"names": ["x", "y", "z", "intensity", "ring"],
-                       "formats": ["<f4", "<f4", "<f4", "u1", "u1"],
-                       "offsets": [0, 4, 8, 12, 13], "itemsize": 14})  # fmt: skip
     j, moved = 0, []
     for cloud in clouds:
         assert cloud.frame_id == "lidar" and cloud.point_stride == 14
@@ -124,7 +132,7 @@ def test_the_scans_are_the_recordings_scans(survey):
             "intensity": (12, 1),
             "ring": (13, 1),
         }
-        rows = np.frombuffer(cloud.data, dtype=layout)
+        rows = np.frombuffer(cloud.data, dtype=CLOUD_LAYOUT)
         while not (
             len(scans[j].distinct) == len(rows)
             and np.array_equal(scans[j].distinct["ring"], rows["ring"])
@@ -168,10 +176,16 @@ def test_camera_fixes_and_frames_follow_the_recording(survey):
     assert [(f.latitude, f.longitude) for f in fixes] == [(e.lat, e.lon) for e in expected]
     assert fixes[0].position_covariance_type in (0, 2)
 
-    # Frames: map -> base_link at every pose; base_link -> lidar and lidar -> camera fixed.
+    # Frames: map -> base_link at every pose; base_link -> lidar, base_link -> gnss and
+    # lidar -> camera fixed.
     tf = [m for _, m in messages["/tf"]]
     pairs = {(t.parent_frame_id, t.child_frame_id) for t in tf}
-    assert pairs == {("map", "base_link"), ("base_link", "lidar"), ("lidar", "camera")}
+    assert pairs == {
+        ("map", "base_link"),
+        ("base_link", "lidar"),
+        ("base_link", "gnss"),
+        ("lidar", "camera"),
+    }
     calibration = load_calibration(rec.read_recording(twin.recording).metadata.calibration)
     (lidar,) = [t for t in tf if t.child_frame_id == "lidar"]
     translation = [lidar.translation.x, lidar.translation.y, lidar.translation.z]
@@ -242,3 +256,188 @@ def test_bad_inputs_are_one_line_and_nothing_is_written(survey, tmp_path):
     exists = cli("export", "foxglove", str(bad), "--out", str(view))
     assert exists.returncode == 4 and "--force" in exists.stderr
     assert view.read_bytes() == before
+
+
+def lidar_only_recording(recording: Path, out: Path) -> None:
+    """`recording` without its GNSS, camera and wheels: the LiDAR's channels alone."""
+    keep = {rec.LIDAR_PACKETS, rec.LIDAR_TELEMETRY}
+    with rec.read_recording(recording) as source:
+        calibration = source.metadata.calibration
+        with rec.RecordingWriter(out, calibration=calibration) as sink:
+            for m in source:
+                if m.topic in keep:
+                    sink.write(m.topic, m.data, m.log_time, m.publish_time)
+
+
+class View(NamedTuple):
+    path: Path
+    report: dict
+    calibration: Calibration  # the one the export used
+    source: Path  # what it was exported from
+
+
+@pytest.fixture(scope="module")
+def views(survey, tmp_path_factory) -> dict[str, View]:
+    """The twin as recorded, the twin's LiDAR alone, and a real LiDAR-only capture."""
+    twin, _, _, view, report = survey
+    root = tmp_path_factory.mktemp("lidar_only")
+    recorded = load_calibration(rec.read_recording(twin.recording).metadata.calibration)
+    out = {"twin": View(view, report, recorded, twin.recording)}
+    lidar_only_recording(twin.recording, root / "lidar.mcap")
+    for name, source, calibration in (
+        ("twin_lidar_only", root / "lidar.mcap", None),
+        ("vlp16_capture", CAPTURE, CAPTURE_CALIBRATION),
+    ):
+        target = root / f"{name}.view.mcap"
+        extra = ["--calibration", str(calibration)] if calibration else []
+        result = cli("export", "foxglove", str(source), "--out", str(target), "--json", *extra)
+        assert result.returncode == 0, result.stderr
+        used = load_calibration(calibration) if calibration else recorded
+        out[name] = View(target, json.loads(result.stdout), used, source)
+    return out
+
+
+def path_to_map(frame: str, parents: dict[str, str]) -> list[str]:
+    """The frames from `frame` up to `map`, through the transforms' parents."""
+    path = [frame]
+    while path[-1] != "map":
+        assert path[-1] in parents, f"{frame}: no transform leads from {path[-1]} towards map"
+        path.append(parents[path[-1]])
+        assert len(path) <= len(parents) + 1, f"{frame}: the transforms loop"
+    return path
+
+
+def matrix_of(transform) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    r, p = transform.rotation, transform.translation
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix()
+    out[:3, 3] = (p.x, p.y, p.z)
+    return out
+
+
+@pytest.mark.parametrize("name", ["twin", "twin_lidar_only", "vlp16_capture"])
+def test_every_frame_id_reaches_map_through_tf(views, name):
+    view, report = views[name].path, views[name].report
+    messages = read_view(view)
+    tf = messages["/tf"]
+    # /tf in time order, each transform stamped with its log time.
+    times = [m.log_time for m, _ in tf]
+    assert times == sorted(times)
+    assert all(t.timestamp.ToNanoseconds() == m.log_time for m, t in tf)
+    # The sensors' frames come first, with the first message of the view.
+    first = min(m.log_time for topic in messages.values() for m, _ in topic)
+    assert tf[0][0].log_time == first
+    assert tf[0][1].child_frame_id == "lidar"
+    # A tree: one parent per frame, and map the root.
+    parents: dict[str, str] = {}
+    for _, t in tf:
+        assert parents.setdefault(t.child_frame_id, t.parent_frame_id) == t.parent_frame_id
+    assert "map" not in parents
+    used = set()
+    for topic, pairs in messages.items():
+        for _, m in pairs:
+            if topic == "/trees":
+                used.update(e.frame_id for e in m.entities)
+            elif topic != "/tf":
+                used.add(m.frame_id)
+    for frame in used | set(parents):
+        path_to_map(frame, parents)
+    # Every scan is placed by map -> base_link at its own time.
+    placed = {t.timestamp.ToNanoseconds() for _, t in tf if t.child_frame_id == "base_link"}
+    clouds = [c.timestamp.ToNanoseconds() for _, c in messages["/lidar/points"]]
+    assert clouds and set(clouds) <= placed
+    assert report["scans"] == len(clouds)
+
+
+@pytest.mark.parametrize("name", ["twin_lidar_only", "vlp16_capture"])
+def test_without_poses_map_is_the_robot_where_the_replay_holds_it(views, name):
+    view, report, calibration, _ = views[name]
+    messages = read_view(view)
+    assert set(messages) == {"/tf", "/lidar/points", "/trees"}  # nothing else recorded
+    # The replay maps without poses in the LiDAR frame, standing still: map is the
+    # robot's base there (upright, ground at z = 0), base_link stays on it.
+    assert report["world_frame"] == "lidar" and report["origin"] is None
+    T_base_lidar = np.asarray(calibration.T_base_lidar, dtype=float)
+    assert np.allclose(np.reshape(report["map_from_world"], (4, 4)), T_base_lidar)
+    tf = [t for _, t in messages["/tf"]]
+    bases = [t for t in tf if t.child_frame_id == "base_link"]
+    assert len(bases) == report["scans"]
+    assert all(np.allclose(matrix_of(t), np.eye(4)) for t in bases)
+    (lidar,) = [t for t in tf if t.child_frame_id == "lidar"]
+    assert np.allclose(matrix_of(lidar), T_base_lidar, atol=1e-9)
+    (update,) = [m for _, m in messages["/trees"]]
+    assert len(update.entities) == report["trees"] >= 1
+    with open(view, "rb") as f:
+        (meta,) = [
+            m.metadata for m in make_reader(f).iter_metadata() if m.name == "treetraits-export"
+        ]
+    assert meta["world_frame"] == "lidar"
+    assert np.allclose(np.reshape(json.loads(meta["map_from_world"]), (4, 4)), T_base_lidar)
+
+
+# The view's size over the recording's, measured (docs/data.md, "Size"): the full twin
+# 2.26 (3.12 before the clouds were put on the 2 mm grid), its LiDAR alone 2.69 (4.23).
+# The bounds leave about 10 % for what varies with the drive (scans mapped, how well
+# zstd packs the twin's noise) and fail the float32 clouds of before.
+SIZE_BOUNDS = {"twin": 2.5, "twin_lidar_only": 3.0}
+
+
+@pytest.mark.parametrize("name", sorted(SIZE_BOUNDS))
+def test_the_view_is_in_proportion_to_the_recording(views, name):
+    view = views[name]
+    ratio = view.path.stat().st_size / view.source.stat().st_size
+    assert ratio <= SIZE_BOUNDS[name], f"{name}: the view is {ratio:.2f} x its recording"
+
+
+def test_the_points_decode_to_the_scans_within_the_quantisation_step(survey, views):
+    twin = survey[0]
+    scans, _ = decode_file(twin.recording)
+    for scan in scans[1:-1:10]:
+        rows = np.frombuffer(point_cloud(scan, scan.t_host).data, dtype=CLOUD_LAYOUT)
+        points = scan.distinct if scan.points["duplicate"].any() else scan.points
+        assert len(rows) == len(points) > 1000
+        for axis in ("x", "y", "z"):
+            error = np.abs(rows[axis].astype(float) - points[axis])
+            assert error.max() <= POINT_STEP_M / 2
+        assert np.array_equal(rows["intensity"], points["intensity"])
+        assert np.array_equal(rows["ring"], points["ring"])
+    # Every cloud written sits on the grid (what lets zstd pack it), in every view.
+    for view in views.values():
+        for _, cloud in read_view(view.path)["/lidar/points"]:
+            rows = np.frombuffer(cloud.data, dtype=CLOUD_LAYOUT)
+            for axis in ("x", "y", "z"):
+                steps = rows[axis] / np.float32(POINT_STEP_M)
+                assert np.array_equal(steps, np.round(steps))
+
+
+def test_a_late_first_fix_keeps_map_where_the_run_began(tmp_path):
+    """No fix for the first 14 s: the run maps in odom, then moves its whole map to UTM
+    (tests/service/test_replay.py, the same twin). map stays where the run began: the
+    poses after the move are taken back into odom (before: they jumped 3,787 km to their
+    UTM coordinates), and the trees, in UTM at the end, come back through map_from_world."""
+    survey = twin_survey(
+        SurveySettings(goal=16.0, seed=4, gnss=GnssSettings(outages=((0.0, 14.0),)))
+    )
+    view = tmp_path / "view.mcap"
+    result = cli("export", "foxglove", str(survey.recording), "--out", str(view), "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    messages = read_view(view)
+    path = np.array([(p.pose.position.x, p.pose.position.y) for _, p in messages["/pose"]])
+    assert len(path) == report["scans"] > 100
+    steps = np.hypot(*np.diff(path, axis=0).T)
+    assert steps.max() < 0.2  # 0.5 m/s, 10 scans a second, and the fix's correction
+    assert np.hypot(*(path[-1] - path[0])) > 10  # and it drove
+    assert report["world_frame"] == "utm"  # where the mapper ended with the trees
+    map_from_utm = np.reshape(report["map_from_world"], (4, 4))
+    utm_from_map = np.linalg.inv(map_from_utm)
+    with open(survey.truth_csv, newline="") as f:
+        truth = [(float(r["easting"]), float(r["northing"])) for r in csv.DictReader(f)]
+    (update,) = [m for _, m in messages["/trees"]]
+    assert len(update.entities) == report["trees"] >= 4
+    for e in update.entities:
+        c = e.cylinders[0].pose.position
+        east, north, _ = utm_from_map[:3, :3] @ (c.x, c.y, 0.0) + utm_from_map[:3, 3]
+        assert min(math.hypot(east - x, north - y) for x, y in truth) < 0.5

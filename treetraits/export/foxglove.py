@@ -4,25 +4,32 @@ The recording is run through the same `SurveyProcessor` as `replay` (same config
 calibration rules), and what the pipeline saw is written with the published Foxglove
 protobuf schemas (`foxglove_schemas_protobuf`; each channel's schema is its message's
 `FileDescriptorSet`, message encoding `protobuf`). docs/data.md, "Looking at a survey in
-Foxglove", lists the channels. Frames:
+Foxglove", lists the channels.
 
-- `map`: the run's world frame (`utm` or `odom`) moved to the first posed scan (so that
-  Foxglove's float32 scene keeps centimetres); the origin is in the metadata record
-  `treetraits-export`;
-- `base_link`: the pose at each scan's middle (`/tf`);
-- `lidar` and `camera`: fixed on base_link by the calibration (`/tf`, published with the
-  first pose).
+Frames (`/tf`), whatever sensors the recording has, so that every message's frame_id
+reaches `map`:
+
+- `map`: with poses (GNSS, wheels), the run's world frame (`utm` or `odom`) moved to the
+  first posed scan (so that Foxglove's float32 scene keeps centimetres; a run moved from
+  `odom` to `utm` at a late first fix keeps it where it began); without any, the
+  frame the replay maps in, which stands still (no motion is given to the mapper): the
+  robot's base_link where it stood, z up on its ground. `map_from_world` (and the origin
+  of a posed run) is in the metadata record `treetraits-export`;
+- `base_link`: the pose at each mapped scan's middle (identity without poses);
+- `lidar` and `gnss` on base_link, `camera` on lidar: fixed by the calibration, published
+  once with the recording's first message.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,11 +45,16 @@ from treetraits.errors import ConfigError, ParseError, SourceError
 from treetraits.files import check_output_file, write_atomically
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.localization.pose import Pose
+from treetraits.pipeline.localization.utm import wrap_angle
+
+if TYPE_CHECKING:
+    from treetraits.service.survey import ScanOutcome, SurveyProcessor
 
 MAP_FRAME = "map"
 BASE_FRAME = "base_link"
 LIDAR_FRAME = "lidar"
 CAMERA_FRAME = "camera"
+GNSS_FRAME = "gnss"
 METADATA_NAME = "treetraits-export"
 
 # Channel topics of the view.
@@ -60,6 +72,10 @@ NO_NDVI_RGBA = (0.5, 0.5, 0.5, 0.6)
 _CLOUD_DTYPE = np.dtype(
     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("ring", "u1")]
 )
+# x y z are rounded to this grid (2^-9 m = 1.95 mm, exact in float32 to 32 km): the VLP-16
+# measures distance in 2 mm steps to about 3 cm, so a viewer sees the same cloud, and the
+# low mantissa bits, now zero, let zstd store the clouds in 56 % of the bytes (docs/data.md).
+POINT_STEP_M = 2.0**-9
 
 
 @dataclass
@@ -69,8 +85,9 @@ class ExportReport:
     channels: dict[str, int] = field(default_factory=dict)  # topic -> messages
     scans: int = 0
     trees: int = 0
-    world_frame: str | None = None
-    origin: tuple[float, float] | None = None  # map origin in the world frame
+    world_frame: str | None = None  # the frame the mapper held the trees in
+    origin: tuple[float, float] | None = None  # map origin in the world frame (posed runs)
+    map_from_world: list[float] | None = None  # 4x4, row-major: world_frame into map
     # What of the recording could not be read (treetraits/damage.py): the view is of the rest.
     integrity: dict[str, Any] = field(default_factory=integrity_facts)
 
@@ -180,6 +197,8 @@ def point_cloud(scan: Scan, t: int) -> Any:
     rows = np.empty(len(points), dtype=_CLOUD_DTYPE)
     for name in _CLOUD_DTYPE.names:
         rows[name] = points[name]
+    for name in ("x", "y", "z"):
+        rows[name] = np.round(rows[name] / POINT_STEP_M) * POINT_STEP_M
     kinds = {"f": PackedElementField.FLOAT32, "u": PackedElementField.UINT8}
     message = PointCloud(
         frame_id=LIDAR_FRAME,
@@ -238,6 +257,82 @@ def frame_transform(
     return message
 
 
+def matrix_transform(t: int, parent: str, child: str, parent_from_child: np.ndarray) -> Any:
+    """A FrameTransform from a 4x4 rigid transform (the child's pose in the parent)."""
+    T = parent_from_child
+    return frame_transform(t, parent, child, T[:3, 3], matrix_quaternion(T[:3, :3]))
+
+
+def static_frames(calibration: Calibration, t: int) -> list[Any]:
+    """The sensors on the robot, from the calibration: lidar and gnss on base_link, the
+    camera on lidar (its extrinsics are against the LiDAR) when there is one."""
+    frames = [
+        matrix_transform(t, BASE_FRAME, LIDAR_FRAME, calibration.T_base_lidar),
+        matrix_transform(t, BASE_FRAME, GNSS_FRAME, calibration.T_base_gnss),
+    ]
+    if calibration.T_camera_lidar is not None:  # the camera in the lidar frame
+        camera = np.linalg.inv(calibration.T_camera_lidar)
+        frames.append(matrix_transform(t, LIDAR_FRAME, CAMERA_FRAME, camera))
+    return frames
+
+
+@dataclass(frozen=True)
+class MapFrame:
+    """Where `map` is in `world`, the frame the mapper holds its trees in: a 4x4 rigid
+    `map_from_world`; `origin`, a posed run's first pose (x, y) in `world`."""
+
+    world: str
+    map_from_world: np.ndarray
+    origin: tuple[float, float] | None = None
+
+
+def posed_map(pose: Pose) -> MapFrame:
+    """The world frame moved to the first posed scan: float32 keeps centimetres there."""
+    map_from_world = np.eye(4)
+    map_from_world[:2, 3] = (-pose.x, -pose.y)
+    return MapFrame(pose.frame, map_from_world, (pose.x, pose.y))
+
+
+def unposed_map(world: str, calibration: Calibration) -> MapFrame:
+    """Without poses the replay gives the mapper no motion: the robot stands still in the
+    frame the mapper holds its trees in (TreeMapper: the LiDAR's, `lidar`; RPH:
+    `base_footprint`). `map` is the robot's base there, so that the view is upright with
+    the ground at z = 0 even for a LiDAR mounted on its side."""
+    if world == LIDAR_FRAME:
+        return MapFrame(world, np.asarray(calibration.T_base_lidar, dtype=float))
+    return MapFrame(world, np.eye(4))
+
+
+def odom_pose(pose: Pose, utm_from_odom: np.ndarray) -> Pose:
+    """A `utm` pose in the `odom` frame its run began in, through the 3x3 transform the
+    run's map was moved into `utm` with (`SurveyProcessor.anchor`)."""
+    x, y, _ = np.linalg.solve(utm_from_odom, (pose.x, pose.y, 1.0))
+    yaw = wrap_angle(pose.yaw - math.atan2(utm_from_odom[1, 0], utm_from_odom[0, 0]))
+    return replace(pose, x=float(x), y=float(y), yaw=yaw, frame="odom")
+
+
+def utm_map(where: MapFrame, utm_from_odom: np.ndarray) -> MapFrame:
+    """The `map` of a run begun in `odom`, seen from `utm`, where its trees ended."""
+    utm_from_odom_4 = np.eye(4)
+    utm_from_odom_4[:2, :2] = utm_from_odom[:2, :2]
+    utm_from_odom_4[:2, 3] = utm_from_odom[:2, 2]
+    map_from_utm = where.map_from_world @ np.linalg.inv(utm_from_odom_4)
+    origin = where.origin or (0.0, 0.0)
+    x, y, _ = utm_from_odom @ (origin[0], origin[1], 1.0)
+    return MapFrame("utm", map_from_utm, (float(x), float(y)))
+
+
+def base_in_map(pose: Pose | None, where: MapFrame, t: int) -> Any:
+    """map -> base_link at a mapped scan: its pose; without one the robot's base, which
+    `map` is (`unposed_map`)."""
+    if pose is None:
+        return matrix_transform(t, MAP_FRAME, BASE_FRAME, np.eye(4))
+    origin = where.origin or (0.0, 0.0)
+    translation = (pose.x - origin[0], pose.y - origin[1], pose.z)
+    rotation = quaternion_zyx(pose.yaw, pose.pitch, pose.roll)
+    return frame_transform(t, MAP_FRAME, BASE_FRAME, translation, rotation)
+
+
 def location_fix(fix: Fix) -> Any | None:
     """A GNSS epoch with a position; its GST sigmas as a diagonal ENU covariance."""
     from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
@@ -291,7 +386,7 @@ def ndvi_jpeg(frame: Frame, calibration: Calibration, quality: int = 85) -> byte
     return data.tobytes() if ok else None
 
 
-def scene_update(trees: list, origin: tuple[float, float], t: int) -> Any:
+def scene_update(trees: list, map_from_world: np.ndarray, t: int) -> Any:
     """The trees as upright cylinders in `map`: diameter the width, length the height,
     standing on z = 0 (base_footprint's ground), coloured by NDVI; id and traits as
     metadata, the id as a label above."""
@@ -310,8 +405,8 @@ def scene_update(trees: list, origin: tuple[float, float], t: int) -> Any:
         ):
             entity.metadata.add(key=key, value=str(value))
         cylinder = entity.cylinders.add(bottom_scale=1.0, top_scale=1.0)
-        cylinder.pose.position.x = tree.x - origin[0]
-        cylinder.pose.position.y = tree.y - origin[1]
+        x, y, _ = map_from_world[:3, :3] @ (tree.x, tree.y, tree.z) + map_from_world[:3, 3]
+        cylinder.pose.position.x, cylinder.pose.position.y = float(x), float(y)
         cylinder.pose.position.z = tree.height_m / 2
         cylinder.pose.orientation.w = 1.0
         cylinder.size.x = cylinder.size.y = tree.width_m
@@ -403,6 +498,7 @@ def export_foxglove(
                 "world_frame": report.world_frame or "",
                 "origin_x": repr(report.origin[0]) if report.origin else "",
                 "origin_y": repr(report.origin[1]) if report.origin else "",
+                "map_from_world": json.dumps(report.map_from_world),
             },
         )
         writer.finish()
@@ -419,44 +515,20 @@ def export_foxglove(
 
 
 def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progress) -> None:
-    calibration = inputs.calibration
     from treetraits.service.survey import make_processor
 
-    processor = make_processor(config, calibration)
+    processor = make_processor(config, inputs.calibration)
+    view = _View(writer, inputs.calibration, report)
     splitter, epochs = SentenceSplitter(), EpochAssembler()
-    origin: tuple[float, float] | None = None
-    poses: list[Pose] = []
-    first_time: int | None = None
-    last_time = 0
 
     def fixes(fix: Fix | None) -> None:
         if fix is not None and (message := location_fix(fix)) is not None:
             writer.write(FIX, message, fix.t_host, fix.utc_ns or fix.t_host)
 
-    def outcome(o) -> None:
-        nonlocal origin, first_time
-        t = o.pose.t if o.pose is not None else o.scan.t_host
-        report.scans += 1
-        if o.pose is not None:
-            if origin is None:
-                origin = (o.pose.x, o.pose.y)
-                report.world_frame = o.pose.frame
-                _static_frames(writer, calibration, t)
-            writer.write(POSE, pose_in_map(o.pose, origin), t, t)
-            poses.append(o.pose)
-            p = o.pose
-            q = quaternion_zyx(p.yaw, p.pitch, p.roll)
-            translation = (p.x - origin[0], p.y - origin[1], p.z)
-            writer.write(TF, frame_transform(t, MAP_FRAME, BASE_FRAME, translation, q), t, t)
-        writer.write(POINTS, point_cloud(o.scan, t), t, t)
-        if o.frame is not None and (jpeg := ndvi_jpeg(o.frame, calibration)) is not None:
-            writer.write(NDVI, compressed_image(jpeg, o.frame.t_capture), t, o.frame.t_capture)
-        first_time = t if first_time is None else first_time
-
     for topic, data, log_time, publish_time in inputs.source.messages:
-        last_time = max(last_time, log_time)
+        view.received(log_time)
         for o in processor.feed(topic, data, log_time, publish_time):
-            outcome(o)
+            view.scan(o, processor)
         if topic == rec.CAMERA_JPEG:
             writer.write(IMAGE, compressed_image(bytes(data), publish_time), log_time, publish_time)
         elif topic == rec.GNSS_NMEA:
@@ -466,38 +538,93 @@ def _export(inputs, config, writer: FoxgloveWriter, report: ExportReport, progre
         if progress:
             progress(len(data))
     for o in processor.finish():
-        outcome(o)
+        view.scan(o, processor)
     fixes(epochs.flush())
     trees = [
         t
         for t in processor.mapper.trees()
         if t.observations >= config.output.min_observations and t.kind == TREE
     ]
-    report.trees = len(trees)
-    report.origin = origin
-    # The final map and the whole path, shown from the first scan on (Foxglove keeps a
-    # scene entity until it is replaced, and shows a topic's latest message).
-    t0 = first_time if first_time is not None else last_time
-    if poses:
-        writer.write(PATH, path_in_map(poses, origin or (0.0, 0.0), t0), t0, t0)
-    if trees:
-        writer.write(TREES, scene_update(trees, origin or (0.0, 0.0), t0), t0, t0)
+    view.finish(trees, processor)
 
 
-def _static_frames(writer: FoxgloveWriter, calibration: Calibration, t: int) -> None:
-    """lidar on base_link, camera on lidar: fixed, published once with the first pose."""
-    T = calibration.T_base_lidar
-    writer.write(
-        TF,
-        frame_transform(t, BASE_FRAME, LIDAR_FRAME, T[:3, 3], matrix_quaternion(T[:3, :3])),
-        t,
-        t,
-    )
-    if calibration.T_camera_lidar is not None:
-        T = np.linalg.inv(calibration.T_camera_lidar)  # the camera in the lidar frame
-        writer.write(
-            TF,
-            frame_transform(t, LIDAR_FRAME, CAMERA_FRAME, T[:3, 3], matrix_quaternion(T[:3, :3])),
-            t,
-            t,
-        )
+class _View:
+    """The messages written from the pipeline's scans, and what they need from each other:
+    the sensors' frames before anything, `map` fixed by the first mapped scan."""
+
+    def __init__(self, writer: FoxgloveWriter, calibration: Calibration, report: ExportReport):
+        self.writer, self.calibration, self.report = writer, calibration, report
+        self.map: MapFrame | None = None
+        self.poses: list[Pose] = []
+        self.first_scan: int | None = None  # time of the first mapped scan
+        self.first_time: int | None = None  # of the first message received
+        self.last_time = 0
+        self.ndvi_of: int | None = None  # the sequence of the last frame written as NDVI
+
+    def received(self, log_time: int) -> None:
+        if self.first_time is None:
+            # The sensors' frames first, so that every message can be placed from the start.
+            self.first_time = log_time
+            for message in static_frames(self.calibration, log_time):
+                self.writer.write(TF, message, log_time, log_time)
+        self.last_time = max(self.last_time, log_time)
+
+    def scan(self, o: ScanOutcome, processor: SurveyProcessor) -> None:
+        t = o.pose.t if o.pose is not None else o.scan.t_host
+        self.report.scans += 1
+        if self.map is None:
+            self.map = (
+                posed_map(o.pose)
+                if o.pose is not None
+                else unposed_map(processor.mapper.frame or LIDAR_FRAME, self.calibration)
+            )
+            self.first_scan = t
+        pose = self.in_map_world(o.pose, processor.anchor)
+        self.writer.write(TF, base_in_map(pose, self.map, t), t, t)
+        if pose is not None:
+            self.writer.write(POSE, pose_in_map(pose, self.map.origin or (0.0, 0.0)), t, t)
+            self.poses.append(pose)
+        self.writer.write(POINTS, point_cloud(o.scan, t), t, t)
+        self.ndvi(o.frame, t)
+
+    def in_map_world(self, pose: Pose | None, anchor: tuple[int, np.ndarray] | None) -> Pose | None:
+        """A run mapped in `odom` until its first fix goes on in `utm` (its map moved there
+        whole, `SurveyProcessor._reanchor`); `map` stays where it began, in `odom`, so the
+        later poses are taken back there rather than jump to their UTM coordinates."""
+        if pose is None or self.map is None or anchor is None:
+            return pose
+        if (self.map.world, pose.frame) == ("odom", "utm"):
+            return odom_pose(pose, anchor[1])
+        return pose
+
+    def ndvi(self, frame: Frame | None, t: int) -> None:
+        """The NDVI of the frame a scan used, once per frame: scans faster than the camera
+        share one, and Foxglove shows it until the next."""
+        if frame is None or frame.sequence == self.ndvi_of:
+            return
+        self.ndvi_of = frame.sequence
+        if (jpeg := ndvi_jpeg(frame, self.calibration)) is not None:
+            self.writer.write(NDVI, compressed_image(jpeg, frame.t_capture), t, frame.t_capture)
+
+    def finish(self, trees: list, processor: SurveyProcessor) -> None:
+        """The final map and the whole path, shown from the first scan on (Foxglove keeps a
+        scene entity until it is replaced, and shows a topic's latest message)."""
+        if self.map is not None and (self.map.world, processor.mapper.frame) == ("odom", "utm"):
+            self.map = utm_map(self.map, processor.anchor[1])  # the trees are in utm now
+        if self.map is None:
+            # Nothing mapped: `map` is still the robot's base, so that what was written
+            # (camera, fixes) reaches it.
+            self.map = unposed_map(BASE_FRAME, self.calibration)
+            if self.first_time is not None:
+                base = base_in_map(None, self.map, self.last_time)
+                self.writer.write(TF, base, self.last_time, self.last_time)
+        self.report.trees = len(trees)
+        self.report.world_frame = self.map.world
+        self.report.origin = self.map.origin
+        self.report.map_from_world = self.map.map_from_world.ravel().tolist()
+        t0 = self.first_scan if self.first_scan is not None else self.last_time
+        if self.poses:
+            path = path_in_map(self.poses, self.map.origin or (0.0, 0.0), t0)
+            self.writer.write(PATH, path, t0, t0)
+        if trees:
+            self.writer.write(TREES, scene_update(trees, self.map.map_from_world, t0), t0, t0)
