@@ -20,6 +20,8 @@ LONGEST_FIRST = (
     "tests/drivers/rosbag/test_convert.py",
     "tests/test_jit.py",
     "tests/season/test_batch.py",
+    "tests/season/test_report.py",
+    "tests/cli/test_rules.py",
     "tests/service/test_process.py",
     "tests/cli/test_errors.py",
     "tests/evaluation/test_evaluation.py",
