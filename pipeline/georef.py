@@ -160,6 +160,7 @@ def georeference(
                 status=FOUND if kind == TREE else REJECTED,
                 reason=None if kind == TREE else kind,
                 height_top_seen=getattr(tree, "height_top_seen", None),
+                width_sides_seen=getattr(tree, "width_sides_seen", None),
                 **({} if kind == TREE else _cues(tree)),
             )
         )

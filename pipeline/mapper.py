@@ -88,6 +88,9 @@ class TrackedTree:
     # Some scan's beam passed over its top (`pipeline.visibility`); else its height is a
     # lower bound: the crown went on above the LiDAR's top beam in every scan.
     height_top_seen: bool = False
+    # 2: the LiDAR saw the crown from both sides (`sides_seen`); 1: from one side only, so
+    # its far side was hidden and the width is a lower bound; None: not judged (RPH).
+    width_sides_seen: int | None = None
     # Its cues over its scans (`vegetation.EvidenceSum`): each one's mean (NaN: never
     # measured) and the evidence they weigh (None: no cue measured).
     evidence: float | None = None
@@ -97,6 +100,12 @@ class TrackedTree:
 
 
 _MAX_TRUNK_SIGHTINGS = 512
+# Where the LiDAR stood when it measured a tree (`_Tree.views`): a new place is kept once
+# it is this far from the last one kept. A robot standing still adds nothing, and a quarter
+# metre turns the bearing from a tree 2.5 m off the lane by 6 deg at most: the span of the
+# bearings, all `sides_seen` asks, is kept to that.
+_VIEW_SPACING_M = 0.25
+_MAX_VIEWS = 512
 
 
 @dataclass
@@ -109,6 +118,9 @@ class _Tree:
     # x-y of the trunk axis under its crown, one per scan that saw exactly one (the traits
     # frame, as the outline), N x 2: where the tree stands (`trunk_position`).
     trunks: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+    # x, y and heading of the LiDAR at the scans that measured it (the traits frame): the
+    # sides its crown was seen from (`sides_seen`).
+    views: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
     # The record `TreeMapper._tracked` made of it last, with the key it built from the
     # track and the map; None once the tree changed (a cluster, a vote, an absorbed track).
     record: tuple[tuple, TrackedTree] | None = field(default=None, repr=False)
@@ -127,6 +139,18 @@ class _Tree:
             # Every other one kept: the places' shares of the sightings stay as they were,
             # and `trunk_position`'s cost stays bounded for a tree seen for minutes.
             self.trunks = self.trunks[::2]
+
+    def add_view(self, view: np.ndarray) -> None:
+        """The LiDAR's x, y and heading at a scan that measured the tree, unless it stood
+        within `_VIEW_SPACING_M` of the last one kept; at most `_MAX_VIEWS` are kept."""
+        if len(self.views) and np.hypot(*(self.views[-1, :2] - view[:2])) < _VIEW_SPACING_M:
+            return
+        self.add_views(view)
+
+    def add_views(self, views: np.ndarray) -> None:
+        self.views = np.concatenate([self.views, np.reshape(views, (-1, 3))])
+        if len(self.views) > _MAX_VIEWS:
+            self.views = self.views[::2]  # every other: the places along the path stay
 
 
 # Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).
@@ -234,6 +258,12 @@ class TreeMapper:
 
         # Traits: each cluster to the tree it went to; then trees merged this scan.
         traits_from_base = self._traits_from_map @ map_from_base
+        # Where the LiDAR stands this scan and the robot's heading, in the traits frame (the
+        # world with poses, the dead-reckoned frame without): where each tree it measures
+        # is seen from (`sides_seen`).
+        lidar = traits_from_base[:2, :3] @ self.T_base_lidar[:3, 3] + traits_from_base[:2, 3]
+        heading = math.atan2(traits_from_base[1, 0], traits_from_base[0, 0])
+        view = np.array([lidar[0], lidar[1], heading])
         centres = _Centres(
             self.tracker.tracks,
             self._traits_from_map,
@@ -258,7 +288,14 @@ class TreeMapper:
                 continue
             outline = steady and (placeable or isinstance(tree.traits, RobustTraits))
             self._observe(
-                tree, cluster, traits_from_base, decision.tree_id, centres, outline, pose_sigma
+                tree,
+                cluster,
+                traits_from_base,
+                decision.tree_id,
+                centres,
+                outline,
+                pose_sigma,
+                view,
             )
         for kept, absorbed in step.merged:
             self._absorb(kept, absorbed)
@@ -344,6 +381,11 @@ class TreeMapper:
         )
         if trunk is not None:
             centre = trunk
+        if centre is None:  # where the track is, in the traits frame (as the views)
+            rotation, shift = self._traits_from_map[:2, :3], self._traits_from_map[:2, 3]
+            sides = sides_seen(rotation @ position + shift, tree.views)
+        else:
+            sides = sides_seen(centre, tree.views)
         x, y = position[0], position[1]
         if centre is not None:  # traits frame -> the mapper's frame
             x, y = back[:2, :2] @ centre + back[:2, 3]
@@ -365,6 +407,7 @@ class TreeMapper:
             traits=tree.traits.method,
             kind=self._kind(tree),
             height_top_seen=tree.top_seen,
+            width_sides_seen=sides,
             evidence=evidence.total if evidence.measured else None,
             texture_m=cues.mean("texture"),
             planar_share=cues.mean("planar"),
@@ -475,6 +518,7 @@ class TreeMapper:
         centres,
         outline: bool,
         pose_sigma: float | None,
+        view: np.ndarray,
     ) -> None:
         # A cluster that took in a piece of a neighbour's crown (touching crowns whose
         # trunk was hidden for a few scans) gives it back before anything is measured.
@@ -482,6 +526,8 @@ class TreeMapper:
         world += traits_from_base[:3, 3]  # in place: the same sums, no second array
         own = centres.nearest_is(world[:, :2], tree_id)
         points, ring, world = _kept(own, cluster.points, cluster.ring, world)
+        if len(points):  # returns of its own were measured from here
+            tree.add_view(view)
         world_points = ground_world = None
         if outline:  # both methods keep the outline in the world frame (its centre)
             world_points = world
@@ -601,6 +647,47 @@ class TreeMapper:
         tree.ndvi_count += gone.ndvi_count
         tree.top_seen = tree.top_seen or gone.top_seen
         tree.add_trunks(gone.trunks)
+        tree.add_views(gone.views)
+
+
+# Both sides of a crown in view (`sides_seen`). A crown's width across its row is whole
+# only when the LiDAR faced both of its sides: from one lane it faces the near side, and
+# the far half of the crown, across the row, stands behind the near half (a citrus canopy
+# lets few beams through), so what is measured across the row is what stands out towards
+# that lane. The row's direction is the robot's own: it drives along the rows, so the mean
+# of its headings (as an axis: a lane driven either way is the same row) over the scans
+# that measured the tree. The LiDAR stood on a side of the row's line through the tree's
+# centre when its bearing from the centre is at least SIDES_MARGIN_DEG off that line; both
+# sides, when it did so on each. The margin: the centre is an estimate, and a crown seen
+# from one side with no trunk sighted has its outline's centre pulled toward that side, by
+# up to a quarter of its width (0.7 m for a 2.8 m crown). A LiDAR on the row's own line
+# (at the headland, looking down the row: it faces the crown's end, neither side) then
+# reads as on the far side by atan(0.7 / range), 8 deg at 5 m; 10 deg keeps such a view
+# from counting, while a lane beside the row (2.5 m off its line in a 5 m grid) puts the
+# LiDAR beyond 10 deg everywhere within 14 m of the tree along it.
+SIDES_MARGIN_DEG = 10.0
+
+
+def row_direction(headings: np.ndarray) -> float:
+    """The axis the robot drove along (rad): the mean of `headings` as axes (each angle
+    doubled, averaged as a unit vector, halved), so driving a lane either way counts the
+    same; 0 when they cancel out (a robot circling the tree, seen from every side)."""
+    doubled = 2 * np.asarray(headings, dtype=float)
+    return 0.5 * math.atan2(float(np.sin(doubled).sum()), float(np.cos(doubled).sum()))
+
+
+def sides_seen(centre: np.ndarray, views: np.ndarray, margin_deg: float = SIDES_MARGIN_DEG) -> int:
+    """2 when the LiDAR's places `views` (N x 3: x, y and the robot's heading, rad; the
+    frame of `centre`, a tree's x-y) lie on both sides of the row's line through the
+    centre (`row_direction` of the headings), each at least `margin_deg` off that line as
+    seen from the centre; else 1 (one side, or no place at all)."""
+    views = np.reshape(views, (-1, 3))
+    if not len(views):
+        return 1
+    offsets = views[:, :2] - np.asarray(centre, dtype=float)[:2]
+    across = np.sin(np.arctan2(offsets[:, 1], offsets[:, 0]) - row_direction(views[:, 2]))
+    least = math.sin(math.radians(margin_deg))  # sin: off the line on that side by >= margin
+    return 2 if (across >= least).any() and (across <= -least).any() else 1
 
 
 def trunk_position(

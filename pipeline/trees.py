@@ -96,6 +96,29 @@ INDEX = decimals(4)  # NDVI
 SCORE = decimals(3)  # vegetation evidence, shares
 
 
+# ---- lower bounds: how the outputs that print traits mark them ------------------------
+
+LOWER_BOUND = ">"  # before a value that is a lower bound: `>2.55`
+HEIGHT_BOUND_LEGEND = (
+    "height >: a lower bound, the crown's top above the LiDAR's top beam in every scan "
+    "(height_top_seen false)"
+)
+WIDTH_BOUND_LEGEND = (
+    "width >: a lower bound, the crown seen from one side only, its far side hidden "
+    "(width_sides_seen 1)"
+)
+
+
+def height_bounded(height_top_seen: bool | None) -> bool:
+    """The height is a lower bound (False: the top never in view; None: not judged)."""
+    return height_top_seen is False
+
+
+def width_bounded(width_sides_seen: int | None) -> bool:
+    """The width is a lower bound (1: one side seen; None: not judged)."""
+    return width_sides_seen == 1
+
+
 # ---- the table -------------------------------------------------------------------------
 
 _KEY = "treetraits.tree_field"  # the dataclass field metadata key
@@ -186,7 +209,9 @@ class Tree:
     `height_top_seen`: whether the LiDAR's beams passed over the crown's top in some scan
     (the height is then the top's); False: the crown went on above the top beam in every
     scan and `height_m` is a lower bound; None where nobody judged it (a missing tree,
-    the baselines).
+    the baselines). `width_sides_seen`: 2 when the LiDAR saw the crown from both sides, 1
+    when from one side only (its far side hidden: `width_m` is a lower bound), None where
+    nobody judged it (`pipeline.mapper.sides_seen`).
 
     The fields are declared in the constructor's positional order; each one's `position`
     is its place among the columns (field_id and row are the second and third there).
@@ -225,7 +250,11 @@ class Tree:
         sql_line="position",
     )
     width_m: float = column(
-        8, METRES, "width, metres, 3 decimals; empty when unmeasured", sql_line="traits"
+        8,
+        METRES,
+        "width, metres, 3 decimals; empty when unmeasured; a lower bound where "
+        "`width_sides_seen` is 1",
+        sql_line="traits",
     )
     height_m: float = column(
         9,
@@ -277,7 +306,7 @@ class Tree:
         sql="NOT NULL DEFAULT 'found'",
     )
     reason: str | None = column(
-        16,
+        17,
         TEXT,
         "why a rejected object is not a tree (`pipeline.classify.REASONS`): a property of "
         "rejected.geojson's features only, kept in the store's `rejected` table",
@@ -295,10 +324,20 @@ class Tree:
         default=None,
         sql_note="1, 0 (the height is a lower bound), NULL (not judged)",
     )
+    width_sides_seen: int | None = column(
+        16,
+        COUNT,
+        "`2`: the crown was seen from both sides of its row (the LiDAR stood on each side of "
+        "the row's line through the tree); `1`: from one side only, its far side hidden, "
+        "`width_m` is a lower bound; empty when not judged (a missing tree, the RPH baseline; "
+        'docs/pipeline.md, "Widths seen from one side")',
+        default=None,
+        sql_note="2 (both sides), 1 (one side: the width is a lower bound), NULL (not judged)",
+    )
     # A rejected object's cues (`pipeline.vegetation`), each its mean over the track's
     # scans: how close it came to being a tree. rejected.geojson and the store only.
     evidence: float | None = column(
-        17,
+        18,
         SCORE,
         "a rejected object's vegetation evidence, the sum of its cues' weighted "
         "contributions (negative: against vegetation; docs/pipeline.md); empty when no "
@@ -309,7 +348,7 @@ class Tree:
         sql=None,
     )
     texture_m: float | None = column(
-        18,
+        19,
         METRES,
         "a rejected object's surface texture (m): off-midpoint distance of returns 5 cm "
         "apart along a ring, mean over its scans; empty when unmeasured",
@@ -319,7 +358,7 @@ class Tree:
         sql=None,
     )
     planar_share: float | None = column(
-        19,
+        20,
         SCORE,
         "a rejected object's share of 0.3 m patches flat within the range noise, mean over "
         "its scans; empty when unmeasured",
@@ -329,7 +368,7 @@ class Tree:
         sql=None,
     )
     intensity: float | None = column(
-        20,
+        21,
         SCORE,
         "a rejected object's median LiDAR intensity (0-255), mean over its scans; empty "
         "when unmeasured",

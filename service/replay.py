@@ -26,7 +26,14 @@ from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
 from treetraits.pipeline.fieldmap import load_field_map, parse_geojson
 from treetraits.pipeline.georef import iso_utc
-from treetraits.pipeline.trees import Tree
+from treetraits.pipeline.trees import (
+    HEIGHT_BOUND_LEGEND,
+    LOWER_BOUND,
+    WIDTH_BOUND_LEGEND,
+    Tree,
+    height_bounded,
+    width_bounded,
+)
 from treetraits.service.config import ServiceConfig
 from treetraits.service.outputs import (
     CSV_NAME,
@@ -369,16 +376,21 @@ def format_table(trees: list[Tree]) -> str:
             traits = f"{'missing':>27}"
         else:
             ndvi = f"{t.ndvi:5.2f}" if t.ndvi is not None else f"{'-':>5}"
-            bound = ">" if t.height_top_seen is False else ""
-            height = f"{bound}{t.height_m:.2f}"
-            traits = f"{t.width_m:7.2f} {height:>8} {ndvi} {t.observations:4d}"
+            width = _bounded(t.width_m, width_bounded(t.width_sides_seen))
+            height = _bounded(t.height_m, height_bounded(t.height_top_seen))
+            traits = f"{width:>7} {height:>8} {ndvi} {t.observations:4d}"
         lines.append(
             f"{t.tree_id or '-':>5} {t.field_id or '-':>8} {t.row or '-':>6} {east} {north} "
             f"{traits}"
         )
-    if any(t.status != "missing" and t.height_top_seen is False for t in trees):
-        lines.append(
-            ">: a lower bound, the crown's top above the LiDAR's top beam in every scan "
-            "(height_top_seen false)"
-        )
+    found = [t for t in trees if t.status != "missing"]
+    if any(width_bounded(t.width_sides_seen) for t in found):
+        lines.append(WIDTH_BOUND_LEGEND)
+    if any(height_bounded(t.height_top_seen) for t in found):
+        lines.append(HEIGHT_BOUND_LEGEND)
     return "\n".join(lines)
+
+
+def _bounded(value: float, bound: bool) -> str:
+    """A trait with 2 decimals, marked `>` where it is a lower bound."""
+    return f"{LOWER_BOUND if bound else ''}{value:.2f}"

@@ -22,4 +22,5 @@ CONTRACT_CSV_COLUMNS = [
     "last_seen",
     "status",  # appended after the contract's fourteen: found or missing
     "height_top_seen",  # appended: true, false (height a lower bound) or empty
+    "width_sides_seen",  # appended: 2 (both sides), 1 (width a lower bound) or empty
 ]

@@ -46,7 +46,16 @@ T_SEEN = int(datetime(2026, 11, 22, 10, 15, 30, tzinfo=timezone.utc).timestamp()
 
 
 def tracked(
-    tree_id, x, y, frame="utm", width=2.7, height=2.6, ndvi=0.61, seen=T_SEEN, top_seen=False
+    tree_id,
+    x,
+    y,
+    frame="utm",
+    width=2.7,
+    height=2.6,
+    ndvi=0.61,
+    seen=T_SEEN,
+    top_seen=False,
+    sides=1,
 ):
     return TrackedTree(
         tree_id=tree_id,
@@ -62,6 +71,7 @@ def tracked(
         last_seen=seen + 5_123_456_789,
         traits="paper",
         height_top_seen=top_seen,
+        width_sides_seen=sides,
     )
 
 
@@ -382,7 +392,14 @@ def output_trees():
     field_map = [field_tree("M1", E0, N0, "north-1")]
     trees = [
         tracked(
-            1, E0 + 0.25, N0 - 0.1, width=2.71234, height=2.60049, ndvi=0.612345, top_seen=True
+            1,
+            E0 + 0.25,
+            N0 - 0.1,
+            width=2.71234,
+            height=2.60049,
+            ndvi=0.612345,
+            top_seen=True,
+            sides=2,
         ),
         tracked(2, E0 + 10.0, N0, ndvi=None),  # off the map
         tracked(3, 1.0, 2.0, frame="odom"),  # in an outage, no transform yet
@@ -423,6 +440,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         last,
         "found",
         "true",
+        "2",
     ]
     lat, lon = GRID.inverse(E0 + 10.0, N0)
     assert rows[2] == [
@@ -442,6 +460,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         last,
         "found",
         "false",
+        "1",
     ]
     assert rows[3] == [
         "3",
@@ -460,6 +479,7 @@ def test_trees_csv_columns_and_values_exactly(tmp_path):
         last,
         "found",
         "false",
+        "1",
     ]
     assert len(rows) == 4
     assert oct(os.stat(path).st_mode & 0o777) == "0o644"
@@ -489,9 +509,11 @@ def test_trees_geojson(tmp_path):
         "last_seen": "2026-11-22T10:15:35.123Z",
         "status": "found",
         "height_top_seen": True,
+        "width_sides_seen": 2,
     }
     assert off_map["properties"]["field_id"] is None and off_map["properties"]["ndvi"] is None
     assert off_map["properties"]["height_top_seen"] is False
+    assert off_map["properties"]["width_sides_seen"] == 1
     assert unplaced["geometry"] is None and unplaced["properties"]["easting"] is None
 
 
@@ -559,6 +581,7 @@ def test_geojson_properties_follow_the_table():
     assert cells["width_m"] == f"{properties['width_m']:.3f}"
     assert cells["first_seen"] == properties["first_seen"]
     assert cells["height_top_seen"] == "true" and properties["height_top_seen"] is True
+    assert cells["width_sides_seen"] == "2" and properties["width_sides_seen"] == 2
 
 
 def test_the_docs_field_table_is_the_code_table():

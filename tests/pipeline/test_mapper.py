@@ -17,7 +17,14 @@ from tests.helpers.twin import drive, grid_drive, mapped, match
 from treetraits.drivers.calibration import Calibration
 from treetraits.drivers.records import POINT_DTYPE
 from treetraits.pipeline.config import MapperConfig, TrackingConfig, TraitsConfig
-from treetraits.pipeline.mapper import TreeMapper, _Centres, trunk_position
+from treetraits.pipeline.mapper import (
+    SIDES_MARGIN_DEG,
+    TreeMapper,
+    _Centres,
+    row_direction,
+    sides_seen,
+    trunk_position,
+)
 from treetraits.pipeline.tracking import Motion
 from treetraits.sim.camera import FOLIAGE
 from treetraits.sim.orchard import (
@@ -203,6 +210,80 @@ def test_heading_north_maps_the_same_trees():
     last = data.poses[-1]
     assert_each_found_once(mapper.trees(), data.truth, reach=(last.x, last.y, 14.0))
     assert len(mapper.trees()) >= 4
+
+
+# --- the sides a crown was seen from ----------------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["paper", "robust"])
+def test_a_pass_along_one_side_of_each_row_leaves_every_width_one_sided(method):
+    """The grid drive runs down the lane between the two rows: each row is seen from
+    that lane only, so no crown's far side was in view."""
+    trees = [t for t in mapped(method)[0].trees() if t.kind == "tree"]
+    assert len(trees) == 6
+    assert [t.width_sides_seen for t in trees] == [1] * 6
+
+
+def test_without_poses_the_sides_are_judged_in_the_dead_reckoned_frame():
+    data = grid_drive()
+    mapper = TreeMapper(MapperConfig(), data.calibration)
+    for scan in data.scans[:80]:
+        mapper.process(scan, None, None, motion=Motion(0.5, 0.0))
+    trees = [t for t in mapper.trees() if t.kind == "tree"]
+    assert trees and all(t.width_sides_seen == 1 for t in trees)
+
+
+def _shifted(drive_data, ns: int):
+    """A drive's scans and poses `ns` later on the host clock."""
+    scans = [dataclasses.replace(s, t_host=s.t_host + ns) for s in drive_data.scans]
+    poses = [dataclasses.replace(p, t=p.t + ns) for p in drive_data.poses]
+    return scans, poses
+
+
+def test_a_row_passed_on_both_sides_has_its_crowns_seen_from_both():
+    """One row (y = 0) of two citrus trees: driven east along the lane at y = 2.5, then
+    back west along the lane at y = -2.5. After the first lane every crown is seen from
+    one side; after the second, from both."""
+    specs = grid_orchard(1, 2, 5.0, 5.0, np.random.default_rng(1))
+    ahead = dict(speed=1.0, seconds=12.0, seed=2)
+    east = drive(specs, start=(-3.5, 2.5), heading=0.0, **ahead)
+    west = drive(specs, start=(8.5, -2.5), heading=math.pi, **ahead)
+    mapper = TreeMapper(MapperConfig(), east.calibration)
+    for scan, pose in zip(east.scans, east.poses, strict=True):
+        mapper.process(scan, None, pose)
+    first = [t for t in mapper.trees() if t.kind == "tree"]
+    assert len(first) == 2 and [t.width_sides_seen for t in first] == [1, 1]
+    later = east.scans[-1].t_host + 100_000_000
+    for scan, pose in zip(*_shifted(west, later), strict=True):
+        mapper.process(scan, None, pose)
+    trees = [t for t in mapper.trees() if t.kind == "tree"]
+    assert_each_found_once(trees, east.truth)
+    assert [t.width_sides_seen for t in trees] == [2, 2]
+
+
+def test_sides_seen_counts_a_side_only_beyond_the_margin():
+    """Views as (x, y, heading) around a tree at the origin, a row along x: a lane's
+    pass is one side; a view on the row's own line, or within the margin of it, is on
+    neither; one well off it on the far side makes two."""
+    lane = [(x, 2.5, 0.0) for x in np.arange(-14.0, 14.5, 0.5)]
+    assert sides_seen((0.0, 0.0), np.array(lane)) == 1
+    assert sides_seen((0.0, 0.0), np.empty((0, 3))) == 1
+    on_line = [(5.0, 0.0, 0.0)]  # the headland, looking down the row
+    assert sides_seen((0.0, 0.0), np.array(lane + on_line)) == 1
+    inside = math.tan(math.radians(SIDES_MARGIN_DEG - 1)) * 5.0
+    outside = math.tan(math.radians(SIDES_MARGIN_DEG + 1)) * 5.0
+    assert sides_seen((0.0, 0.0), np.array([*lane, (5.0, -inside, 0.0)])) == 1
+    assert sides_seen((0.0, 0.0), np.array([*lane, (5.0, -outside, 0.0)])) == 2
+    # Driving the lanes either way is one row: the other lane driven back, west.
+    back = [(x, -2.5, math.pi) for x in np.arange(14.0, -14.5, -0.5)]
+    assert sides_seen((0.0, 0.0), np.array(lane + back)) == 2
+    assert row_direction(np.array([0.0, math.pi])) == pytest.approx(0.0, abs=1e-12)
+    # The same views turned with the block (rows at 112 deg): the same answer.
+    turn = math.radians(112.0)
+    c, s = math.cos(turn), math.sin(turn)
+    turned = [(c * x - s * y, s * x + c * y, h + turn) for x, y, h in lane + back]
+    assert sides_seen((0.0, 0.0), np.array(turned)) == 2
+    assert sides_seen((0.0, 0.0), np.array(turned[: len(lane)])) == 1
 
 
 # --- edge cases -------------------------------------------------------------------------

@@ -119,5 +119,5 @@ def test_the_printed_table_marks_a_height_that_is_a_lower_bound():
 
     lines = format_table([tree("1", False), tree("2", True)]).splitlines()
     assert lines[2].split()[-3] == ">2.55" and lines[3].split()[-3] == "2.55"
-    assert lines[-1].startswith(">: a lower bound")
-    assert ">" not in format_table([tree("2", True)])
+    assert lines[-1].startswith("height >: a lower bound")
+    assert ">" not in format_table([tree("2", True)])  # and widths not judged: unmarked

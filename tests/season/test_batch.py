@@ -174,7 +174,8 @@ def test_a_run_report_and_a_bad_source(batch, tmp_path, capsys):
     assert set(heights) == set(flags)
     for tree_id, seen in flags.items():
         assert heights[tree_id].startswith(">") == (seen == 0), (tree_id, heights[tree_id])
-    assert "a lower bound" in page.read_text()
+    text = page.read_text()  # the legend under the table says what the marks mean
+    assert "Lower bounds: " in text and "the height is at least that" in text
     assert main(["report", str(tmp_path), "--out", str(tmp_path / "x.html")]) == 2
     assert "no traits.sqlite" in capsys.readouterr().err
     assert not (tmp_path / "x.html").exists()

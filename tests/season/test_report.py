@@ -243,7 +243,8 @@ def test_a_run_without_gnss_says_so_instead_of_an_empty_map(without_gnss):
     # Every found tree is still listed with its traits.
     header, *rows = page.table("tree")
     assert len(rows) == len(_store_trees(run_dir)) >= 4
-    assert all(re.fullmatch(r"\d\.\d\d", r[header.index("width (m)")]) for r in rows)
+    # One lane between the two rows: every crown seen from one side, its width marked.
+    assert all(re.fullmatch(r">\d\.\d\d", r[header.index("width (m)")]) for r in rows)
 
 
 def test_rejected_objects_are_counted_with_their_reasons(without_gnss):
@@ -310,3 +311,29 @@ def test_the_drives_are_what_the_season_says(season):
         surveys = store.surveys()
     assert [s.summary["trees"] for s in surveys] == [4, 4]
     assert surveys[1].t_start - surveys[0].t_start == pytest.approx(DAY_S * 1e9, abs=5e9)
+
+
+def test_a_run_store_from_before_the_width_flag_shows_its_widths_unmarked(tmp_path):
+    """A run's store written before `width_sides_seen` (its `trees` table without the
+    column), read as it is: its heights marked as its flag says, its widths shown as
+    measured (not known either way), and the store left unchanged."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    with sqlite3.connect(run_dir / "traits.sqlite") as db:
+        db.execute(
+            "CREATE TABLE trees (tree_id TEXT PRIMARY KEY, field_id TEXT, row TEXT, "
+            "easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL, width_m REAL, "
+            "height_m REAL, ndvi REAL, observations INTEGER NOT NULL, first_seen INTEGER, "
+            "last_seen INTEGER, status TEXT NOT NULL DEFAULT 'found', height_top_seen INTEGER)"
+        )
+        db.execute("CREATE TABLE run (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+        db.execute(
+            "INSERT INTO trees (tree_id, width_m, height_m, observations, height_top_seen) "
+            "VALUES ('1', 2.71, 2.55, 30, 0), ('2', 2.68, 2.60, 30, 1)"
+        )
+    before = (run_dir / "traits.sqlite").read_bytes()
+    page = _report(run_dir, tmp_path / "run.html")
+    header, *rows = page.table("tree")
+    cells = {r[1]: (r[header.index("width (m)")], r[header.index("height (m)")]) for r in rows}
+    assert cells == {"1": ("2.71", ">2.55"), "2": ("2.68", "2.60")}
+    assert (run_dir / "traits.sqlite").read_bytes() == before

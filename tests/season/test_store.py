@@ -27,7 +27,18 @@ T0 = 1_778_605_200 * 10**9  # 2026-05-12T17:00:00Z
 GRID = [(467000.0 + 5 * c, 3758000.0 + 5 * r) for r in range(3) for c in range(4)]
 
 
-def tree(tree_id, east, north, width=2.5, height=2.4, ndvi=0.7, field_id=None, status="found"):
+def tree(
+    tree_id,
+    east,
+    north,
+    width=2.5,
+    height=2.4,
+    ndvi=0.7,
+    field_id=None,
+    status="found",
+    top_seen=None,
+    sides=None,
+):
     return Tree(
         tree_id,
         east,
@@ -44,6 +55,8 @@ def tree(tree_id, east, north, width=2.5, height=2.4, ndvi=0.7, field_id=None, s
         field_id,
         None,
         status,
+        height_top_seen=top_seen,
+        width_sides_seen=sides,
     )
 
 
@@ -191,12 +204,13 @@ def test_two_blocks_may_share_field_ids(tmp_path, capsys):
 def test_season_cli_json_export_and_errors(tmp_path, capsys):
     path = tmp_path / "season.sqlite"
     with SeasonStore(path) as store:
-        add(store, "a", T0, [tree("1", *GRID[0], width=2.0, height=2.0, ndvi=0.70)])
+        measured = {"top_seen": True, "sides": 2}  # heights and widths whole
+        add(store, "a", T0, [tree("1", *GRID[0], width=2.0, height=2.0, ndvi=0.70, **measured)])
         add(
             store,
             "b",
             T0 + 60 * DAY_NS,
-            [tree("7", GRID[0][0] + 0.3, GRID[0][1], width=2.4, height=2.3, ndvi=0.62)],
+            [tree("7", GRID[0][0] + 0.3, GRID[0][1], width=2.4, height=2.3, ndvi=0.62, **measured)],
         )
         store.relink("north", DEFAULT_LINK_GATE_M)
     assert main(["season", "trees", "--season", str(path), "--json"]) == 0
@@ -254,3 +268,147 @@ def test_the_season_keeps_a_run_trees_columns_as_the_run_does(tmp_path):
     run = dict(zip(CSV_COLUMNS, csv_row(run_tree), strict=True))
     assert [season[name] for name in VISIT_COLUMNS] == [run[name] for name in VISIT_COLUMNS]
     assert season["width_m"] == "2.712" and season["ndvi"] == "0.6123"
+
+
+def test_lower_bounds_are_kept_marked_and_left_out_of_the_height_change(tmp_path, capsys):
+    """A tree measured whole in May and July, and in June from a drive that saw its crown
+    from one lane with its top cut (2.00 m: it did not shrink). The season keeps each
+    survey's flags; `season trees`, the JSON and season.csv mark June's values; the height
+    change is May to July, the lower bound left out; the width change says when an end
+    of it was seen from one side."""
+    path = tmp_path / "season.sqlite"
+    whole = {"top_seen": True, "sides": 2}
+    cut = {"top_seen": False, "sides": 1}
+    with SeasonStore(path) as store:
+        for name, day, height, flags in (("may", 0, 2.79, whole), ("june", 30, 2.00, cut)):
+            add(store, name, T0 + day * DAY_NS, [tree("1", *GRID[0], height=height, **flags)])
+        add(store, "july", T0 + 60 * DAY_NS, [tree("1", *GRID[0], width=2.6, height=2.85, **whole)])
+        store.relink("north", DEFAULT_LINK_GATE_M)
+        (t,) = store.trees()
+    assert [(v.height_top_seen, v.width_sides_seen) for v in t.visits] == [
+        (True, 2),
+        (False, 1),
+        (True, 2),
+    ]
+
+    assert main(["season", "trees", "--season", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "width >2.50 m  height >2.00 m" in text  # June's
+    assert "width 2.50 m  height 2.79 m" in text  # May's, unmarked
+    assert "width >: a lower bound, the crown seen from one side only" in text
+    assert "height >: a lower bound, the crown's top above the LiDAR's top beam" in text
+    assert main(["season", "trees", "--season", str(path), "--json"]) == 0
+    surveys = json.loads(capsys.readouterr().out)["trees"][0]["surveys"]
+    assert [(s["height_top_seen"], s["width_sides_seen"]) for s in surveys] == [
+        (True, 2),
+        (False, 1),
+        (True, 2),
+    ]
+
+    out = tmp_path / "export"
+    assert main(["season", "export", "--season", str(path), "--out", str(out)]) == 0
+    header, *lines = (out / "season.csv").read_text().splitlines()
+    rows = [dict(zip(header.split(","), line.split(","), strict=True)) for line in lines]
+    assert [(r["height_top_seen"], r["width_sides_seen"]) for r in rows] == [
+        ("true", "2"),
+        ("false", "1"),
+        ("true", "2"),
+    ]
+    (feature,) = json.loads((out / "season.geojson").read_text())["features"]
+    growth = feature["properties"]
+    # May to July: 0.06 m in 60 days; June's 2.00 m is left out (with it: -0.79 m).
+    assert growth["height_change_m_per_30d"] == pytest.approx(0.03)
+    assert growth["height_lower_bounds"] == 1
+    assert growth["width_change_m_per_30d"] == pytest.approx(0.05)
+    assert growth["width_change_one_sided"] is False  # May and July: both sides
+    assert (growth["height_top_seen"], growth["width_sides_seen"]) == (True, 2)  # July's
+
+
+def test_with_every_height_a_lower_bound_there_is_no_height_change(tmp_path):
+    from treetraits.season.export import growth
+
+    with SeasonStore(tmp_path / "season.sqlite") as store:
+        for name, day, height in (("may", 0, 2.79), ("july", 60, 2.0)):
+            trees = [tree("1", *GRID[0], height=height, top_seen=False, sides=1)]
+            add(store, name, T0 + day * DAY_NS, trees)
+        store.relink("north", DEFAULT_LINK_GATE_M)
+        (t,) = store.trees()
+    change = growth(t)
+    assert change["height_change_m_per_30d"] is None and change["height_lower_bounds"] == 2
+    assert change["width_change_one_sided"] is True
+
+
+# Version 1 of the season store (before it kept the flags): the tables that changed,
+# restated as the stores on disk hold them.
+VERSION_1_TABLES = """
+CREATE TABLE season (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE surveys (
+    survey_id INTEGER PRIMARY KEY, block TEXT NOT NULL, recording TEXT NOT NULL,
+    fingerprint TEXT NOT NULL, t_start INTEGER NOT NULL, software TEXT NOT NULL,
+    config_key TEXT NOT NULL, run_dir TEXT NOT NULL, data_loss INTEGER NOT NULL,
+    summary TEXT NOT NULL, processed_at TEXT NOT NULL, UNIQUE (block, fingerprint)
+);
+CREATE TABLE survey_trees (
+    survey_id INTEGER NOT NULL REFERENCES surveys (survey_id) ON DELETE CASCADE,
+    run_tree_id TEXT NOT NULL, status TEXT NOT NULL, field_id TEXT, row TEXT,
+    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
+    width_m REAL, height_m REAL, ndvi REAL, observations INTEGER NOT NULL
+);
+CREATE TABLE trees (
+    tree_id TEXT NOT NULL, block TEXT NOT NULL, field_id TEXT, row TEXT,
+    easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
+    PRIMARY KEY (block, tree_id)
+);
+CREATE TABLE tree_surveys (
+    tree_id TEXT NOT NULL,
+    survey_id INTEGER NOT NULL REFERENCES surveys (survey_id) ON DELETE CASCADE,
+    status TEXT NOT NULL, run_tree_id TEXT,
+    easting REAL, northing REAL, lat REAL, lon REAL,
+    width_m REAL, height_m REAL, ndvi REAL, observations INTEGER,
+    PRIMARY KEY (tree_id, survey_id)
+);
+CREATE TABLE failures (
+    recording TEXT NOT NULL, block TEXT NOT NULL, software TEXT NOT NULL,
+    config_key TEXT NOT NULL, error TEXT NOT NULL, at TEXT NOT NULL
+);
+INSERT INTO season VALUES ('schema_version', '1');
+INSERT INTO surveys VALUES (1, 'north', 'may.mcap', 'fp-may', 1778605200000000000,
+    'treetraits 0.1.0', 'key', '/runs/may', 0, '{}', '2026-05-12T18:00:00Z');
+INSERT INTO survey_trees VALUES (1, '1', 'found', NULL, NULL, 467000.0, 3758000.0, '11N',
+    NULL, NULL, 2.5, 2.79, 0.7, 20);
+INSERT INTO trees VALUES ('pos-1', 'north', NULL, NULL, 467000.0, 3758000.0, '11N', NULL,
+    NULL);
+INSERT INTO tree_surveys VALUES ('pos-1', 1, 'found', '1', 467000.0, 3758000.0, NULL, NULL,
+    2.5, 2.79, 0.7, 20);
+"""
+
+
+def test_a_version_1_season_is_read_with_its_flags_unknown_and_upgraded_by_a_writer(
+    tmp_path, capsys
+):
+    path = tmp_path / "season.sqlite"
+    with sqlite3.connect(path) as db:
+        db.executescript(VERSION_1_TABLES)
+    # Read as it is (`season`, `report` open it read-only): its flags not known.
+    with SeasonStore(path, create=False) as store:
+        (t,) = store.trees()
+    assert [(v.height_m, v.height_top_seen, v.width_sides_seen) for v in t.visits] == [
+        (2.79, None, None)
+    ]
+    assert main(["season", "trees", "--season", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "height 2.79 m" in text and "not known whether they are lower bounds" in text
+    assert sqlite3.connect(path).execute("SELECT value FROM season").fetchone() == ("1",)
+
+    # A batch's writer adds the columns (NULL for the survey there) and the next survey
+    # comes with its flags.
+    with SeasonStore(path) as store:
+        add(store, "july", T0 + 60 * DAY_NS, [tree("1", *GRID[0], top_seen=False, sides=1)])
+        store.relink("north", DEFAULT_LINK_GATE_M)
+        (t,) = store.trees()
+    assert [(v.height_top_seen, v.width_sides_seen) for v in t.visits] == [(None, None), (False, 1)]
+    db = sqlite3.connect(path)
+    assert db.execute("SELECT value FROM season").fetchone() == ("2",)
+    for table in ("survey_trees", "tree_surveys"):
+        columns = [c[1] for c in db.execute(f"PRAGMA table_info({table})")]
+        assert columns[-2:] == ["height_top_seen", "width_sides_seen"], table

@@ -206,6 +206,24 @@ def test_a_store_from_before_a_column_gets_it(tmp_path):
         ]
 
 
+def test_a_store_from_before_the_width_flag_gets_it(tmp_path):
+    """A run's store written with the height flag and no width flag: opened, it gains
+    `width_sides_seen`, NULL (not judged) for the trees already there, and keeps the flag
+    of the trees written after."""
+    path = tmp_path / "traits.sqlite"
+    old = sqlite3.connect(path)
+    old.executescript(STORED_TREES_TABLE + ");")
+    old.execute("INSERT INTO trees (tree_id, observations, height_top_seen) VALUES ('T0', 3, 0)")
+    old.commit()
+    old.close()
+    with TraitStore(path) as store:
+        store.commit_scan([], [dataclasses.replace(tree(1), width_sides_seen=1)])
+        back = [(t.tree_id, t.height_top_seen, t.width_sides_seen) for t in store.trees()]
+        stored = store._db.execute("SELECT width_sides_seen FROM trees ORDER BY tree_id")
+        assert stored.fetchall() == [(None,), (1,)]
+    assert back == [("T0", False, None), ("T1", None, 1)]
+
+
 def test_a_rejected_table_from_before_the_cues_gets_them(tmp_path):
     """A store whose `rejected` table predates the vegetation cues: opened, it gains
     them (NULL for the objects already there) and takes new objects with their cues."""

@@ -89,11 +89,15 @@ def _export(args: argparse.Namespace, season) -> int:
 
 
 def format_history(trees) -> str:
-    """One block of lines per tree: its surveys by date with the traits measured."""
-    from treetraits.pipeline.trees import iso_utc
-
-    def cell(value, fmt: str) -> str:
-        return "-" if value is None else format(value, fmt)
+    """One block of lines per tree: its surveys by date with the traits measured, a
+    lower bound marked `>` (as `replay`'s table), and what the marks mean."""
+    from treetraits.pipeline.trees import (
+        HEIGHT_BOUND_LEGEND,
+        WIDTH_BOUND_LEGEND,
+        height_bounded,
+        iso_utc,
+        width_bounded,
+    )
 
     lines = []
     for t in trees:
@@ -103,8 +107,35 @@ def format_history(trees) -> str:
             traits = (
                 "missing"
                 if v.status == "missing"
-                else f"width {cell(v.width_m, '.2f')} m  height {cell(v.height_m, '.2f')} m  "
-                f"NDVI {cell(v.ndvi, '.2f')}"
+                else f"width {_cell(v.width_m, width_bounded(v.width_sides_seen))} m  "
+                f"height {_cell(v.height_m, height_bounded(v.height_top_seen))} m  "
+                f"NDVI {_cell(v.ndvi)}"
             )
             lines.append(f"  {iso_utc(v.t_start)[:16]}  survey {v.survey_id}  {traits}")
-    return "\n".join(lines) if lines else "no trees in this season"
+    if not lines:
+        return "no trees in this season"
+    found = [v for t in trees for v in t.visits if v.status == "found"]
+    if any(width_bounded(v.width_sides_seen) for v in found):
+        lines.append(WIDTH_BOUND_LEGEND)
+    if any(height_bounded(v.height_top_seen) for v in found):
+        lines.append(HEIGHT_BOUND_LEGEND)
+    if any(v.height_top_seen is None or v.width_sides_seen is None for v in found):
+        lines.append(UNKNOWN_FLAGS)
+    return "\n".join(lines)
+
+
+# Surveys without the flags (added by a treetraits that kept none, or RPH's): unmarked.
+UNKNOWN_FLAGS = (
+    "some surveys do not say how their traits were measured (added before the season kept "
+    "it, or by RPH): not known whether they are lower bounds (`batch --force` processes "
+    "their recordings again)"
+)
+
+
+def _cell(value: float | None, bound: bool = False) -> str:
+    """A trait with 2 decimals, `>` before a lower bound; `-` when not measured."""
+    from treetraits.pipeline.trees import LOWER_BOUND
+
+    if value is None:
+        return "-"
+    return f"{LOWER_BOUND if bound else ''}{value:.2f}"

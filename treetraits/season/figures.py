@@ -297,14 +297,22 @@ def draw_histories(histories: Sequence[History], survey_times_ns: Sequence[int])
     for i, (name, label) in enumerate(TRAITS):
         ax = fig.add_subplot(1, 3, i + 1)
         ax.set_gid(f"{name}")
+        bounds = []  # (time, value) of the lower bounds, all trees
         for h in histories:
-            pairs = [
-                (t, v) for t, v in zip(h.times_ns, getattr(h, name), strict=True) if v is not None
+            points = [
+                (t, v, bound)
+                for t, v, bound in zip(h.times_ns, getattr(h, name), h.bounded(name), strict=True)
+                if v is not None
             ]
-            if pairs:
+            if points:
                 ax.plot(
-                    [_utc(t) for t, _ in pairs], [v for _, v in pairs], marker="o", label=h.label
+                    [_utc(t) for t, _, _ in points],
+                    [v for _, v, _ in points],
+                    marker="o",
+                    label=h.label,
                 )
+                bounds += [(t, v) for t, v, bound in points if bound]
+        marked = _draw_lower_bounds(ax, name, bounds) if bounds else None
         ax.set_xlim(lo, hi)
         ax.xaxis.set_major_locator(DayLocator(interval=interval, tz=dt.timezone.utc))
         ax.xaxis.set_major_formatter(DateFormatter("%Y-%m-%d", tz=dt.timezone.utc))
@@ -315,8 +323,27 @@ def draw_histories(histories: Sequence[History], survey_times_ns: Sequence[int])
         ax.grid(alpha=0.3)
         if i == 0 and histories:
             ax.legend(fontsize=7)
+        elif marked is not None:  # the trees are named once, in the first plot
+            ax.legend(handles=[marked], fontsize=7)
     fig.tight_layout()
     return svg(fig, "histories", "width, height and NDVI of a few trees over the season")
+
+
+def _draw_lower_bounds(ax, name: str, bounds: Sequence[tuple[int, float]]):
+    """Open upward triangles over the values that are lower bounds ("at least this"),
+    one artist with its own id (`histories-<trait>-lower-bounds`) and legend entry."""
+    (line,) = ax.plot(
+        [_utc(t) for t, _ in bounds],
+        [v for _, v in bounds],
+        linestyle="none",
+        marker="^",
+        markersize=11,
+        markerfacecolor="none",
+        markeredgecolor="k",
+        label="lower bound",
+        gid=f"{name}-lower-bounds",
+    )
+    return line
 
 
 def date_window(times_ns: Sequence[int]) -> tuple[dt.datetime, dt.datetime]:

@@ -30,7 +30,13 @@ from typing import TYPE_CHECKING, Any
 from treetraits.errors import SourceError
 from treetraits.files import write_atomically
 from treetraits.pipeline import classify
-from treetraits.pipeline.trees import TREE_FIELD, iso_utc
+from treetraits.pipeline.trees import (
+    LOWER_BOUND,
+    TREE_FIELD,
+    height_bounded,
+    iso_utc,
+    width_bounded,
+)
 
 if TYPE_CHECKING:
     from treetraits.season.store import SeasonTree, Survey
@@ -72,8 +78,13 @@ class MapTree:
     status: str  # found or missing
     width_change: float | None = None  # m per 30 days (season)
     # False: the crown's top was above the LiDAR's view in every scan, so the height is a
-    # lower bound; None where the store does not say (a season, an older run).
+    # lower bound; None where the store does not say (an older run or season survey).
     height_top_seen: bool | None = None
+    # 1: the crown was seen from one side only, so the width is a lower bound; 2: both
+    # sides; None where the store does not say.
+    width_sides_seen: int | None = None
+    # The season's width change has a first or last width seen from one side only.
+    width_change_one_sided: bool | None = None
     run_id: str | None = None  # the run's id (a run's page; None for a missing tree)
     field_id: str | None = None  # the field-map tree it was matched to
 
@@ -106,6 +117,18 @@ class History:
     width_m: list[float | None]
     height_m: list[float | None]
     ndvi: list[float | None]
+    # Each survey's flags (None: not known): a lower bound is marked on the plot.
+    height_top_seen: list[bool | None] = field(default_factory=list)
+    width_sides_seen: list[int | None] = field(default_factory=list)
+
+    def bounded(self, name: str) -> list[bool]:
+        """Which of the trait's values are lower bounds (`width_m`, `height_m`; none of
+        NDVI's, nor where the flags were not given)."""
+        if name == "width_m" and self.width_sides_seen:
+            return [width_bounded(s) for s in self.width_sides_seen]
+        if name == "height_m" and self.height_top_seen:
+            return [height_bounded(s) for s in self.height_top_seen]
+        return [False] * len(self.times_ns)
 
 
 @dataclass(frozen=True)
@@ -222,14 +245,15 @@ def _run_trees(db: sqlite3.Connection) -> tuple[list[MapTree], int | None]:
     """Every tree of the run, found and missing, with a UTM position or not; and when
     the run first saw one (ns, the host clock), its date."""
     columns = {r[1] for r in db.execute("PRAGMA table_info(trees)")}
-    top_seen = "height_top_seen" if "height_top_seen" in columns else "NULL"  # older runs
+    # A store older than a flag has no column for it: NULL (not known).
+    flags = [c if c in columns else "NULL" for c in ("height_top_seen", "width_sides_seen")]
     rows = db.execute(
         "SELECT tree_id, field_id, row, easting, northing, width_m, height_m, ndvi, status, "
-        f"{top_seen}, first_seen FROM trees"
+        f"{', '.join(flags)}, first_seen FROM trees"
     ).fetchall()
-    top = TREE_FIELD["height_top_seen"]
+    top, sides = TREE_FIELD["height_top_seen"], TREE_FIELD["width_sides_seen"]
     trees = []
-    for tree_id, field_id, row, e, n, width, height, ndvi, status, seen_top, _ in rows:
+    for tree_id, field_id, row, e, n, width, height, ndvi, status, seen_top, seen_sides, _ in rows:
         run_id = None if status == "missing" else str(tree_id)
         trees.append(
             MapTree(
@@ -243,12 +267,13 @@ def _run_trees(db: sqlite3.Connection) -> tuple[list[MapTree], int | None]:
                 ndvi,
                 status,
                 height_top_seen=top.from_sql(seen_top),
+                width_sides_seen=sides.from_sql(seen_sides),
                 run_id=run_id,
                 field_id=field_id,
             )
         )
     trees.sort(key=lambda t: (t.status != "found", _natural(t.label)))
-    first = [r[10] for r in rows if r[10] is not None]
+    first = [r[11] for r in rows if r[11] is not None]
     return trees, min(first) if first else None
 
 
@@ -396,6 +421,9 @@ def _season_data(path: Path) -> ReportData:
                 g["ndvi"],
                 t.visits[-1].status,
                 g["width_change_m_per_30d"],
+                height_top_seen=g["height_top_seen"],
+                width_sides_seen=g["width_sides_seen"],
+                width_change_one_sided=g["width_change_one_sided"],
             )
         )
     ranked = sorted(trees, key=lambda t: (-sum(v.status == "found" for v in t.visits), t.tree_id))
@@ -413,6 +441,10 @@ def _season_data(path: Path) -> ReportData:
     rejected: Counter = Counter()
     for row in rows:
         rejected.update(row.rejected)
+    found = [v for t in trees for v in t.visits if v.status == "found"]
+    notes = []
+    if any(v.height_top_seen is None or v.width_sides_seen is None for v in found):
+        notes.append(UNKNOWN_FLAGS_NOTE)
     return ReportData(
         title=page_title("Season", path.stem, dates),
         source=str(path),
@@ -430,6 +462,7 @@ def _season_data(path: Path) -> ReportData:
         histories=histories,
         surveys=rows,
         survey_times=[s.t_start for s in surveys],
+        notes=notes,
         rejected_counts=dict(sorted(rejected.items(), key=lambda kv: (-kv[1], kv[0]))),
     )
 
@@ -444,6 +477,8 @@ def _history(tree: SeasonTree) -> History:
         [v.width_m for v in found],
         [v.height_m for v in found],
         [v.ndvi for v in found],
+        [v.height_top_seen for v in found],
+        [v.width_sides_seen for v in found],
     )
 
 
@@ -466,7 +501,8 @@ def _survey_row(survey: Survey) -> SurveyRow:
 
 def row_table(trees: Sequence[MapTree]) -> list[dict]:
     """Per row (the field map's; "-" for trees off the map): trees found, missing, and
-    the mean width, height and NDVI of the found ones."""
+    the mean width, height and NDVI of the found ones; `width_bound`, `height_bound`: the
+    mean takes in a lower bound, so it is one too."""
     rows: dict[str, list[MapTree]] = defaultdict(list)
     for t in trees:
         rows[t.row or "-"].append(t)
@@ -486,6 +522,8 @@ def row_table(trees: Sequence[MapTree]) -> list[dict]:
                 "width_m": mean(t.width_m for t in found),
                 "height_m": mean(t.height_m for t in found),
                 "ndvi": mean(t.ndvi for t in found),
+                "width_bound": any(_width_bound(t) for t in found),
+                "height_bound": any(_height_bound(t) for t in found),
             }
         )
     return table
@@ -528,13 +566,14 @@ def render_html(data: ReportData, colour: str = "height") -> str:
                     r["row"],
                     r["found"],
                     r["missing"],
-                    _f(r["width_m"]),
-                    _f(r["height_m"]),
+                    _bounded(r["width_m"], r["width_bound"]),
+                    _bounded(r["height_m"], r["height_bound"]),
                     _f(r["ndvi"]),
                 ]
                 for r in row_table(data.trees)
             ],
         ),
+        *_bound_legend(data.trees, "a row's mean that takes in one is one too"),
         "<h2>Distributions</h2>",
         figures.draw_histograms(data.trees),
     ]
@@ -557,6 +596,7 @@ def _season_sections(data: ReportData) -> list[str]:
         figures.draw_map(data, growth=True) or "",
         "<h2>A few trees over the season</h2>",
         figures.draw_histories(data.histories, data.survey_times),
+        *_history_legend(data.histories),
         "<h2>Surveys</h2>",
         _table(
             ["date (UTC)", "block", "recording", "trees found", "missing", "rejected", "read"],
@@ -640,18 +680,67 @@ def _trees_section(data: ReportData) -> list[str]:
         header = ["tree", "row", "last status", "width (m)", "height (m)", "NDVI"]
         header.append("width change (m / 30 days)")
         rows = [
-            [t.label, t.row or "-", t.status, *_traits(t), _f(t.width_change)] for t in data.trees
+            [t.label, t.row or "-", t.status, *_traits(t), _width_change(t)] for t in data.trees
         ]
     else:
         header = ["tree", "run id", "row", "status", "width (m)", "height (m)", "NDVI"]
         rows = [[t.label, t.run_id or "-", t.row or "-", t.status, *_traits(t)] for t in data.trees]
-    parts = ["<h2>Trees</h2>", _table(header, rows)]
-    if any(t.height_top_seen is False for t in data.trees):
-        parts.append(
-            "<p><small>&gt;2.55 m: a lower bound; the crown's top was above the LiDAR's "
-            "view in every scan.</small></p>"
-        )
+    parts = ["<h2>Trees</h2>", _table(header, rows), *_bound_legend(data.trees)]
+    if any(t.width_change_one_sided for t in data.trees):
+        parts.append(f"<p><small>{html.escape(ONE_SIDED_CHANGE)}</small></p>")
     return parts
+
+
+# What the page's marks mean (`_bound_legend`, `_history_legend`).
+WIDTH_BOUND_TEXT = (
+    "the crown was seen from one side only, its far side hidden: the width is at least that"
+)
+HEIGHT_BOUND_TEXT = (
+    "the crown's top was above the LiDAR's view in every scan: the height is at least that"
+)
+ONE_SIDED_CHANGE = (
+    "(1 side): the change is from a first or last width seen from one side only; it "
+    "compares like with like only where both surveys saw the crown the same way."
+)
+UNKNOWN_FLAGS_NOTE = (
+    "Some surveys do not say how each height and width was measured (added before the "
+    "season kept it, or by a method that does not judge it: RPH): their values are not "
+    "marked as lower bounds even where they are, and their heights are left out of the "
+    "height change. `treetraits batch --force` over their recordings adds them again "
+    "with the marks."
+)
+
+
+def _bound_legend(trees: Sequence[MapTree], also: str = "") -> list[str]:
+    """The legend line under a table with lower bounds marked `>`; none without any."""
+    meanings = []
+    if any(_width_bound(t) for t in trees):
+        meanings.append(f"a width marked {LOWER_BOUND}: {WIDTH_BOUND_TEXT}")
+    if any(_height_bound(t) for t in trees):
+        meanings.append(f"a height marked {LOWER_BOUND}: {HEIGHT_BOUND_TEXT}")
+    if not meanings:
+        return []
+    text = "Lower bounds: " + "; ".join(meanings) + (f"; {also}" if also else "") + "."
+    return [f'<p class="legend"><small>{html.escape(text)}</small></p>']
+
+
+def _history_legend(histories: Sequence[History]) -> list[str]:
+    """What the open triangles of the histories mean, when there are any."""
+    traits = [
+        name.split("_")[0]
+        for name in ("width_m", "height_m")
+        if any(any(h.bounded(name)) for h in histories)
+    ]
+    if not traits:
+        return []
+    text = (
+        f"Open triangles: a survey's {' or '.join(traits)} that is a lower bound "
+        f"({'; '.join(_MEANING[t] for t in traits)})."
+    )
+    return [f'<p class="legend"><small>{html.escape(text)}</small></p>']
+
+
+_MEANING = {"width": WIDTH_BOUND_TEXT, "height": HEIGHT_BOUND_TEXT}
 
 
 def write_report(path: Path, data: ReportData, colour: str = "height") -> None:
@@ -692,10 +781,27 @@ def _reasons(counts: dict[str, int]) -> str:
 
 
 def _traits(tree: MapTree) -> list[str]:
-    return [_f(tree.width_m), _height(tree), _f(tree.ndvi)]
+    """Width, height and NDVI; a lower bound marked ">" (as `treetraits replay` prints it)."""
+    return [
+        _bounded(tree.width_m, _width_bound(tree)),
+        _bounded(tree.height_m, _height_bound(tree)),
+        _f(tree.ndvi),
+    ]
 
 
-def _height(tree: MapTree) -> str:
-    """The height, marked ">" where it is a lower bound (as `treetraits replay` prints it)."""
-    text = _f(tree.height_m)
-    return f">{text}" if tree.height_top_seen is False and tree.height_m is not None else text
+def _width_bound(tree: MapTree) -> bool:
+    return width_bounded(tree.width_sides_seen) and tree.width_m is not None
+
+
+def _height_bound(tree: MapTree) -> bool:
+    return height_bounded(tree.height_top_seen) and tree.height_m is not None
+
+
+def _bounded(value: float | None, bound: bool) -> str:
+    text = _f(value)
+    return f"{LOWER_BOUND}{text}" if bound and text != "-" else text
+
+
+def _width_change(tree: MapTree) -> str:
+    text = _f(tree.width_change)
+    return f"{text} (1 side)" if tree.width_change_one_sided and text != "-" else text

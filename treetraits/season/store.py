@@ -48,7 +48,9 @@ CREATE TABLE IF NOT EXISTS survey_trees (
     status TEXT NOT NULL,            -- found, or missing (a field-map tree passed, not found)
     field_id TEXT, row TEXT,
     easting REAL, northing REAL, utm_zone TEXT, lat REAL, lon REAL,
-    width_m REAL, height_m REAL, ndvi REAL, observations INTEGER NOT NULL
+    width_m REAL, height_m REAL, ndvi REAL, observations INTEGER NOT NULL,
+    height_top_seen INTEGER,         -- 1, 0 (the height is a lower bound), NULL (not known)
+    width_sides_seen INTEGER         -- 2, 1 (one side: the width is a lower bound), NULL
 );
 CREATE INDEX IF NOT EXISTS survey_trees_survey ON survey_trees (survey_id);
 CREATE TABLE IF NOT EXISTS trees (
@@ -65,6 +67,7 @@ CREATE TABLE IF NOT EXISTS tree_surveys (
     run_tree_id TEXT,
     easting REAL, northing REAL, lat REAL, lon REAL,
     width_m REAL, height_m REAL, ndvi REAL, observations INTEGER,
+    height_top_seen INTEGER, width_sides_seen INTEGER,  -- as in survey_trees
     PRIMARY KEY (tree_id, survey_id)
 );
 CREATE TABLE IF NOT EXISTS failures (
@@ -73,7 +76,15 @@ CREATE TABLE IF NOT EXISTS failures (
 );
 """
 
-SCHEMA_VERSION = "1"
+# 2: `survey_trees` and `tree_surveys` keep how each height and width was measured
+# (`height_top_seen`, `width_sides_seen`). A store of version 1 is read with them NULL
+# (not known) and upgraded when a batch opens it to write: the columns added, NULL for the
+# surveys already there. Version 1 software refuses a version 2 store rather than
+# writing rows without the flags.
+SCHEMA_VERSION = "2"
+READABLE_VERSIONS = ("1", SCHEMA_VERSION)
+# The columns version 2 appended, to both tables.
+FLAG_COLUMNS = ("height_top_seen", "width_sides_seen")
 
 # The run's tree columns `survey_trees` keeps after `survey_id` (`tree_id` as
 # `run_tree_id`), and the ones of a visit (`tree_surveys`, `TreeVisit`), each stored as
@@ -92,8 +103,19 @@ SURVEY_TREE_COLUMNS = (
     "height_m",
     "ndvi",
     "observations",
+    *FLAG_COLUMNS,
 )
-VISIT_COLUMNS = ("easting", "northing", "lat", "lon", "width_m", "height_m", "ndvi", "observations")
+VISIT_COLUMNS = (
+    "easting",
+    "northing",
+    "lat",
+    "lon",
+    "width_m",
+    "height_m",
+    "ndvi",
+    "observations",
+    *FLAG_COLUMNS,
+)
 _SURVEY_TREE_FIELDS = tuple(TREE_FIELD[name] for name in SURVEY_TREE_COLUMNS)
 _VISIT_FIELDS = tuple(TREE_FIELD[name] for name in VISIT_COLUMNS)
 
@@ -135,6 +157,10 @@ class TreeVisit:
     height_m: float | None
     ndvi: float | None
     observations: int | None
+    # How the run measured them (`Tree`'s fields): False / 1 mark a lower bound; None:
+    # not known (a survey added before the season kept them, or a missing tree).
+    height_top_seen: bool | None = None
+    width_sides_seen: int | None = None
 
 
 @dataclass(frozen=True)
@@ -184,6 +210,9 @@ class SeasonStore:
                         (SCHEMA_VERSION,),
                     )
                 self._check()
+                if create:
+                    self._upgrade()
+                self._flags = {t: self._columns(t) & set(FLAG_COLUMNS) for t in _FLAGGED}
         except BaseException:
             self._db.close()
             raise
@@ -195,10 +224,33 @@ class SeasonStore:
         version = self._db.execute(
             "SELECT value FROM season WHERE key = 'schema_version'"
         ).fetchone()
-        if version is None or version[0] != SCHEMA_VERSION:
+        if version is None or version[0] not in READABLE_VERSIONS:
             raise SeasonError(
                 f"{self.path}: season schema {version and version[0]!r}, this treetraits "
-                f"reads {SCHEMA_VERSION!r}"
+                f"reads {' and '.join(map(repr, READABLE_VERSIONS))}"
+            )
+
+    def _columns(self, table: str) -> set[str]:
+        return {row[1] for row in self._db.execute(f"PRAGMA table_info({table})")}
+
+    def _upgrade(self) -> None:
+        """A version 1 store made version 2 (the writer only): the flag columns appended,
+        NULL (not known) for the surveys it holds."""
+        lacking = [
+            (table, name)
+            for table in _FLAGGED
+            for name in FLAG_COLUMNS
+            if name not in self._columns(table)
+        ]
+        version = self._db.execute("SELECT value FROM season WHERE key = 'schema_version'")
+        if not lacking and version.fetchone()[0] == SCHEMA_VERSION:
+            return
+        with self._transaction():
+            for table, name in lacking:
+                definition = TREE_FIELD[name].sql_definition
+                self._db.execute(f"ALTER TABLE {table} ADD COLUMN {name} {definition}")
+            self._db.execute(
+                "UPDATE season SET value = ? WHERE key = 'schema_version'", (SCHEMA_VERSION,)
             )
 
     # --- writing (the batch client) -----------------------------------------------------
@@ -240,7 +292,8 @@ class SeasonStore:
             )
             survey_id = int(cursor.lastrowid)
             self._db.executemany(
-                f"INSERT INTO survey_trees VALUES (?, {_marks(SURVEY_TREE_COLUMNS)})",
+                f"INSERT INTO survey_trees ({_SURVEY_TREES_NAMES}) "
+                f"VALUES (?, {_marks(SURVEY_TREE_COLUMNS)})",
                 [
                     (survey_id, *sql_values(t, _SURVEY_TREE_FIELDS))
                     for t in trees
@@ -282,7 +335,8 @@ class SeasonStore:
                     (tree.tree_id, block, tree.field_id, tree.row, *tree.position()),
                 )
                 self._db.executemany(
-                    f"INSERT INTO tree_surveys VALUES (?, ?, ?, ?, {_marks(VISIT_COLUMNS)})",
+                    f"INSERT INTO tree_surveys ({_TREE_SURVEYS_NAMES}) "
+                    f"VALUES (?, ?, ?, ?, {_marks(VISIT_COLUMNS)})",
                     [
                         (
                             tree.tree_id,
@@ -297,8 +351,11 @@ class SeasonStore:
 
     def _survey_trees(self, survey_id: int) -> list[Tree]:
         """A survey's run trees as they came, without what the season does not keep
-        (times, `height_top_seen`)."""
-        columns = ", ".join("run_tree_id" if c == "tree_id" else c for c in SURVEY_TREE_COLUMNS)
+        (times, the rejected objects' cues); flags a version 1 store lacks are None."""
+        columns = ", ".join(
+            "run_tree_id" if c == "tree_id" else self._flag_or_null("survey_trees", c)
+            for c in SURVEY_TREE_COLUMNS
+        )
         rows = self._db.execute(
             f"SELECT {columns} FROM survey_trees WHERE survey_id = ? ORDER BY rowid",
             (survey_id,),
@@ -339,14 +396,22 @@ class SeasonStore:
         visits: dict[tuple[str, str], list[TreeVisit]] = {(t[1], t[0]): [] for t in trees}
         rows = self._db.execute(
             "SELECT s.block, v.tree_id, v.survey_id, s.t_start, s.recording, v.status, "
-            f"v.run_tree_id, {', '.join(f'v.{c}' for c in VISIT_COLUMNS)} "
+            f"v.run_tree_id, {', '.join(self._visit_column(c) for c in VISIT_COLUMNS)} "
             "FROM tree_surveys v JOIN surveys s USING (survey_id) "
             f"{where.replace('t.', 'v.')} ORDER BY s.t_start, v.survey_id",
             params,
         ).fetchall()
         for r in rows:
-            visits[(r[0], r[1])].append(TreeVisit(*r[2:]))
+            visits[(r[0], r[1])].append(_visit(r[2:]))
         return [SeasonTree(*t, visits=visits[(t[1], t[0])]) for t in trees]
+
+    def _flag_or_null(self, table: str, column: str) -> str:
+        """The column's name, or NULL for a flag a version 1 store read as it is lacks."""
+        return "NULL" if column in FLAG_COLUMNS and column not in self._flags[table] else column
+
+    def _visit_column(self, column: str) -> str:
+        name = self._flag_or_null("tree_surveys", column)
+        return name if name == "NULL" else f"v.{name}"
 
     # --- plumbing -----------------------------------------------------------------------
 
@@ -381,6 +446,28 @@ def _marks(columns: Sequence) -> str:
     return ", ".join("?" * len(columns))
 
 
+# The tables that hold the flags, and the columns the writes name (a version 1 store
+# upgraded has the flags last, as a new one: named all the same).
+_FLAGGED = ("survey_trees", "tree_surveys")
+_SURVEY_TREES_NAMES = ", ".join(
+    ["survey_id", *("run_tree_id" if c == "tree_id" else c for c in SURVEY_TREE_COLUMNS)]
+)
+_TREE_SURVEYS_NAMES = ", ".join(["tree_id", "survey_id", "status", "run_tree_id", *VISIT_COLUMNS])
+
+
+def _visit(values: Sequence) -> TreeVisit:
+    """A visit from its row (survey_id ... run_tree_id, then VISIT_COLUMNS): the flags as
+    the run's fields hold them (a FLAG's 0 / 1 as False / True), NULL as None."""
+    head, tail = values[: -len(VISIT_COLUMNS)], values[-len(VISIT_COLUMNS) :]
+    cells = [
+        TREE_FIELD[name].format.from_sql(value)
+        if name in FLAG_COLUMNS and value is not None
+        else value
+        for name, value in zip(VISIT_COLUMNS, tail, strict=True)
+    ]
+    return TreeVisit(*head, *cells)
+
+
 def season_trees_json(trees: Sequence[SeasonTree]) -> dict:
     """`season trees --json`: {"trees": [{"id": ..., "surveys": [{"date": ..., ...}]}]}."""
 
@@ -396,6 +483,9 @@ def season_trees_json(trees: Sequence[SeasonTree]) -> dict:
             "lat": json_value("lat", v.lat),
             "lon": json_value("lon", v.lon),
             "run_tree_id": v.run_tree_id,
+            # How they were measured (null: not known): false / 1 mark a lower bound.
+            "height_top_seen": v.height_top_seen,
+            "width_sides_seen": v.width_sides_seen,
         }
 
     return {
