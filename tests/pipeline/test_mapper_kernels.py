@@ -1,5 +1,5 @@
 """The Voronoi cut's compiled steps (`mapper._own_distances`, `mapper._nearer`) give what
-the NumPy formulation they replaced gave, on the clusters the mapper cuts on
+the NumPy formulation they replaced gave, on the clusters and trunks the mapper cuts on
 the twin drive past the 2 x 3 grid, with the neighbours it had and with more, nearer
 ones; so do the trunk's crowded places (`mapper._cell_means`) on the sightings the
 mapper gathers there; and they compile nothing beyond the warm-up."""
@@ -36,17 +36,20 @@ def numpy_nearest_is(centres: _Centres, xy: np.ndarray, tree_id: int) -> np.ndar
 
 @functools.cache
 def cuts() -> tuple[tuple[_Centres, np.ndarray, int], ...]:
-    """Every (centres, x-y points, tree) the mapper cut on the twin drive."""
+    """Every (centres, x-y points, tree) the mapper cut on the twin drive: clusters, and
+    trunk sightings (their centres with the claims the trunk was cut by)."""
     seen = []
 
     def spy(nearest_is):
-        def recording(self, xy, tree_id):
-            seen.append((self, np.array(xy), tree_id))
-            return nearest_is(self, xy, tree_id)
+        def recording(self, xy, tree_id, claims):
+            cut = object.__new__(_Centres)
+            cut.__dict__.update(vars(self), claims=claims)
+            seen.append((cut, np.array(xy), tree_id))
+            return nearest_is(self, xy, tree_id, claims)
 
         return recording
 
-    map_twin_drive_watching(MapperConfig(), _Centres, "nearest_is", spy)
+    map_twin_drive_watching(MapperConfig(), _Centres, "_nearest_is", spy)
     return tuple(seen)
 
 
