@@ -31,7 +31,6 @@ from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.fieldmap import FieldTree
 from treetraits.pipeline.localization.utm import UtmGrid
 from treetraits.pipeline.trees import CSV_COLUMNS, Tree, csv_row, geojson_properties
-from treetraits.pipeline.trees import iso_utc as iso_utc  # the outputs' time format, here too
 
 DEFAULT_GATE_M = 1.5
 FEATURES_PER_WRITE = 1000  # GeoJSON features joined per write (~0.5 MB of text)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from operator import attrgetter
 from typing import Any
 
-from treetraits.files import iso_utc  # here too: the outputs' times are written with it
+from treetraits.files import iso_utc
 
 # ---- formats: one kind of value in each output ------------------------------------------
 

@@ -24,8 +24,8 @@ from treetraits.drivers.calibration import Calibration, load_calibration
 from treetraits.drivers.rosbag.detect import refuse_ros_bag
 from treetraits.drivers.velodyne.sources import open_source
 from treetraits.errors import SourceError
+from treetraits.files import iso_utc
 from treetraits.pipeline.fieldmap import load_field_map, parse_geojson
-from treetraits.pipeline.georef import iso_utc
 from treetraits.pipeline.trees import (
     HEIGHT_BOUND_LEGEND,
     LOWER_BOUND,

@@ -9,10 +9,10 @@ import os
 from collections.abc import Sequence
 from typing import Any, TextIO
 
-from treetraits.files import write_atomically
+from treetraits.files import iso_utc, write_atomically
 from treetraits.pipeline.georef import point_geometry
 from treetraits.pipeline.linking import growth_per_30_days
-from treetraits.pipeline.trees import csv_cells, iso_utc, json_value, width_bounded
+from treetraits.pipeline.trees import csv_cells, json_value, width_bounded
 from treetraits.season.store import VISIT_COLUMNS, SeasonTree, TreeVisit
 
 CSV_NAME = "season.csv"
