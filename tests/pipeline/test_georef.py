@@ -18,13 +18,13 @@ from tests.helpers.contract import CONTRACT_CSV_COLUMNS
 from tests.helpers.paths import REPO
 from treetraits.drivers.records import Fix, WheelSample
 from treetraits.errors import ConfigError
+from treetraits.files import iso_utc
 from treetraits.pipeline.fieldmap import FieldTree, load_field_map
 from treetraits.pipeline.georef import (
     CSV_COLUMNS,
     FieldMapIndex,
     _feature,
     georeference,
-    iso_utc,
     match_nearest,
     write_trees_csv,
     write_trees_geojson,
