@@ -91,11 +91,11 @@ def _export(args: argparse.Namespace, season) -> int:
 def format_history(trees) -> str:
     """One block of lines per tree: its surveys by date with the traits measured, a
     lower bound marked `>` (as `replay`'s table), and what the marks mean."""
+    from treetraits.files import iso_utc
     from treetraits.pipeline.trees import (
         HEIGHT_BOUND_LEGEND,
         WIDTH_BOUND_LEGEND,
         height_bounded,
-        iso_utc,
         width_bounded,
     )
 

@@ -28,13 +28,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from treetraits.errors import SourceError
-from treetraits.files import write_atomically
+from treetraits.files import iso_utc, write_atomically
 from treetraits.pipeline import classify
 from treetraits.pipeline.trees import (
     LOWER_BOUND,
     TREE_FIELD,
     height_bounded,
-    iso_utc,
     width_bounded,
 )
 

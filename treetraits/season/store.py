@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from treetraits.errors import TreetraitsError
+from treetraits.files import iso_utc
 from treetraits.pipeline.trees import (
     TREE_FIELD,
     Tree,
-    iso_utc,
     json_value,
     sql_values,
     tree_from_sql,
