@@ -24,7 +24,7 @@ SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libgomp1 libsystemd-dev pkg-confi
 # that needs it is skipped with its reason.
 TEST_PACKAGES := chromium
 
-.PHONY: help setup system-packages demo test lint bench clean install uninstall
+.PHONY: help setup system-packages kernels demo test lint bench clean install uninstall
 
 help:
 	@echo "make demo    set up, then simulate a drive through the orchard twin and replay it"
@@ -34,7 +34,14 @@ help:
 	@echo "make install install the onboard service (as root; DESTDIR=, PREFIX= to stage)"
 	@echo "make uninstall  remove it (keeps the config, the data and the user)"
 
-setup: system-packages $(STAMP)
+setup: system-packages $(STAMP) kernels
+
+# The compiled kernels (numba) into their cache beside the sources, as `make install` does
+# for the service (systemd/install.sh): ~30 s the first time or after a kernel's source
+# changed, 1 s when they are there. Every process after it loads them instead of
+# compiling: the test suite's workers and the commands its tests run.
+kernels: $(STAMP)
+	@$(BIN)/python -c 'from treetraits.service.runtime import load_pipeline; load_pipeline()'
 
 system-packages:
 	@if [ -z "$(PYTHON)" ]; then \

@@ -28,13 +28,17 @@ from treetraits.pipeline.trees import HEIGHT_BOUND_LEGEND, WIDTH_BOUND_LEGEND
 from treetraits.season.store import SeasonStore
 from treetraits.service.replay import format_table
 from treetraits.service.store import TraitStore
+from treetraits.sim.paths import DriveSettings
 from treetraits.sim.run import SurveySettings
 
 DAY_S = 86400.0
 # The straight drive is the one tests/season/test_report.py batches first (its host clock a
 # day behind: the season's first survey); the S path drives the same block the next day.
 STRAIGHT = SurveySettings(columns=2, rows=2, goal=10.0, seed=4, host_clock_offset_s=-DAY_S)
-S_PATH = SurveySettings(path="s", columns=2, rows=2, goal=10.0, seed=2)
+# At 1 m/s (a tractor's walking pace): the lanes on both sides of each row in half the scans.
+S_PATH = SurveySettings(
+    path="s", columns=2, rows=2, goal=10.0, seed=2, drive=DriveSettings(speed=1.0)
+)
 
 
 def _quiet(argv: list[str]) -> tuple[int, str]:
