@@ -389,6 +389,13 @@ class TraitsConfig:
     # A trunk stands under its crown: its place must lie within this share of the
     # crown's width from the outline's centre (0.5: the crown's edge).
     trunk_reach_share: float = 0.5
+    # A height is called measured (`height_top_seen`) when the crown's top is bracketed
+    # within this share of it: below the lowest of the rays that passed over it (the beam
+    # above its highest ring, in each scan that had its top in view, reaching the tree's
+    # position) and above the height measured. 2 deg between a VLP-16's beams is 0.35 m
+    # at 10 m, so one scan brackets no 3 m crown to 5 %; an approach or a drive away,
+    # scan after scan, lowers the rays onto the top. The share a grower asks of a height.
+    top_tolerance: float = 0.05
 
     def __post_init__(self) -> None:
         _validate_traits(self)
@@ -510,3 +517,4 @@ def _validate_traits(r: TraitsConfig) -> None:
     _need(r.trunk_agree_m > 0, "traits.trunk_agree_m must be > 0")
     _need(r.trunk_reach_share > 0, "traits.trunk_reach_share must be > 0")
     _need(0 <= r.trunk_min_share <= 1, "traits.trunk_min_share must be within 0..1")
+    _need(r.top_tolerance >= 0, "traits.top_tolerance must be >= 0")

@@ -92,15 +92,22 @@ class Cluster:
     ground_z: float  # ground height under the centroid, base frame
     shape: Shape  # what the tree rules read (`pipeline.classify`)
     verdict: str  # "tree" or the reason it is not one (`classify.REASONS`)
-    # The beam above its highest ring passed over all of it (`pipeline.visibility`): its
-    # height in this scan is its top, not the top beam's reach.
-    top_seen: bool = False
+    # (3,) base frame: the direction of the beam above its highest ring at its top's
+    # bearing, when that beam passed over all of it (`pipeline.visibility`): its top lies
+    # between its highest return and that ray. None: the crown went on above (or no beam
+    # is above: the sensor's top ring hit it).
+    beam_above: np.ndarray | None = None
     # (3,) base frame: the axis of the one trunk seen under its crown in this scan
     # (`cluster_trunks`); None when none or more than one was seen.
     trunk: np.ndarray | None = None
     # What its surface and colour show (`pipeline.vegetation`) and what that weighs.
     cues: Cues = field(default_factory=Cues)
     evidence: Evidence = field(default_factory=Evidence)
+
+    @property
+    def top_seen(self) -> bool:
+        """Its top was in view in this scan (see `beam_above`)."""
+        return self.beam_above is not None
 
     @property
     def features(self) -> np.ndarray:
@@ -417,8 +424,10 @@ def detect(
     beams = BeamsAbove(points)
     window = math.radians(config.cluster.top_window_deg)
 
-    def top_seen(members: np.ndarray) -> bool:
-        return beams.top_seen(source[members], window, config.cluster.tolerance_m)
+    def beam_above(members: np.ndarray) -> np.ndarray | None:
+        """The beam above the cluster's top, in `base`, when it passed over it all."""
+        beam = beams.beam_above(source[members], window, config.cluster.tolerance_m)
+        return None if beam is None else T_base_lidar[:3, :3] @ beam
 
     clusters = _features(
         clusters_kept,
@@ -431,7 +440,7 @@ def detect(
         ground,
         T_base_lidar[:3, 3],
         config.classify,
-        top_seen,
+        beam_above,
         trunks,
         points[["azimuth", "intensity", "return_type"]],  # a view: nothing copied
         source,
@@ -686,7 +695,7 @@ def _features(
     ground,
     lidar_xyz,
     classify: ClassifyConfig,
-    top_seen: Callable[[np.ndarray], bool],
+    beam_above: Callable[[np.ndarray], np.ndarray | None],
     trunks: dict[int, np.ndarray],
     firing: np.ndarray,
     source: np.ndarray,
@@ -757,7 +766,7 @@ def _features(
                 verdict=judge(shape, classify, evidence),
                 cues=cues,
                 evidence=evidence,
-                top_seen=top_seen(members),
+                beam_above=beam_above(members),
                 trunk=trunks.get(int(kept[k])),
             )
         )

@@ -85,8 +85,9 @@ class TrackedTree:
     traits: str  # "paper" or "robust"
     # "tree", or why it is not one (`pipeline.classify.REASONS`), by its scans' majority
     kind: str = "tree"
-    # Some scan's beam passed over its top (`pipeline.visibility`); else its height is a
-    # lower bound: the crown went on above the LiDAR's top beam in every scan.
+    # Its height is measured: a beam that passed over its top (`pipeline.visibility`)
+    # brackets the top within `traits.top_tolerance` of it (`_Tree.top_bound`); else its
+    # height is a lower bound.
     height_top_seen: bool = False
     # 2: the LiDAR saw the crown from both sides (`sides_seen`); 1: from one side only, so
     # its far side was hidden and the width is a lower bound; None: not judged (RPH).
@@ -100,6 +101,9 @@ class TrackedTree:
 
 
 _MAX_TRUNK_SIGHTINGS = 512
+# A ray over a crown's top may pass this far below its highest return and still have
+# passed over it: the VLP-16's range noise (+-3 cm) and a scan's pose error.
+_RAY_NOISE_M = 0.05
 # Where the LiDAR stood when it measured a tree (`_Tree.views`): a new place is kept once
 # it is this far from the last one kept. A robot standing still adds nothing, and a quarter
 # metre turns the bearing from a tree 2.5 m off the lane by 6 deg at most: the span of the
@@ -114,7 +118,15 @@ class _Tree:
     votes: Votes = field(default_factory=Votes)
     ndvi_sum: float = 0.0
     ndvi_count: int = 0
-    top_seen: bool = False
+    # One row per scan that had its top in view (the traits frame): the LiDAR's x, y, z
+    # and the rise per metre of the beam above its top (`top_bound`).
+    tops: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
+    # The highest of its own returns in any scan (the traits frame's z): its top is
+    # at least that high.
+    top_z: float = -math.inf
+    # The ground's z under its clusters, one per scan (the traits frame; at most
+    # `_MAX_TRUNK_SIGHTINGS`): where its height's foot can be (`height_measured`).
+    grounds: np.ndarray = field(default_factory=lambda: np.empty(0))
     # x-y of the trunk axis under its crown, one per scan that saw exactly one (the traits
     # frame, as the outline), N x 2: where the tree stands (`trunk_position`).
     trunks: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
@@ -139,6 +151,36 @@ class _Tree:
             # Every other one kept: the places' shares of the sightings stay as they were,
             # and `trunk_position`'s cost stays bounded for a tree seen for minutes.
             self.trunks = self.trunks[::2]
+
+    def add_tops(self, tops: np.ndarray) -> None:
+        self.tops = np.concatenate([self.tops, np.reshape(tops, (-1, 4))])
+        if len(self.tops) > _MAX_VIEWS:  # every other: a scan's ray lies close to the next
+            self.tops = self.tops[::2]
+
+    def add_grounds(self, z: np.ndarray) -> None:
+        self.grounds = np.concatenate([self.grounds, np.ravel(z)])
+        if len(self.grounds) >= _MAX_TRUNK_SIGHTINGS:  # every other: the spread stays
+            self.grounds = self.grounds[::2]
+
+    def height_measured(self, centre: np.ndarray, height: float, tolerance: float) -> bool:
+        """Both ends of its `height` known within `tolerance` of it (the traits frame):
+        its top, between its highest return (`top_z`) and the lowest of the rays that
+        passed over it, taken at the tree's position `centre` (x-y); and its foot, the
+        ground the height was measured from (`top_z` less the height), no higher above
+        the lowest ground seen under it (10th percentile of `grounds`): a height taken
+        from the top of the weeds under a crown is short by theirs."""
+        if not len(self.tops) or not len(self.grounds) or not height > 0:
+            return False
+        reach = np.hypot(self.tops[:, 0] - centre[0], self.tops[:, 1] - centre[1])
+        rays = self.tops[:, 2] + reach * self.tops[:, 3]
+        # A ray below its highest return passed over a piece of the crown, the rest of it
+        # hidden in that scan or cut off the cluster: it bounds nothing.
+        rays = rays[rays >= self.top_z - _RAY_NOISE_M]
+        margin = tolerance * height
+        if not len(rays) or rays.min() - self.top_z > margin:
+            return False
+        foot = self.top_z - height
+        return bool(foot - np.percentile(self.grounds, 10) <= margin)
 
     def add_view(self, view: np.ndarray) -> None:
         """The LiDAR's x, y and heading at a scan that measured the tree, unless it stood
@@ -383,9 +425,12 @@ class TreeMapper:
             centre = trunk
         if centre is None:  # where the track is, in the traits frame (as the views)
             rotation, shift = self._traits_from_map[:2, :3], self._traits_from_map[:2, 3]
-            sides = sides_seen(rotation @ position + shift, tree.views)
+            here = rotation @ position + shift
         else:
-            sides = sides_seen(centre, tree.views)
+            here = centre
+        sides = sides_seen(here, tree.views)
+        height = float(tree.traits.height)
+        top_measured = tree.height_measured(here, height, self.config.traits.top_tolerance)
         x, y = position[0], position[1]
         if centre is not None:  # traits frame -> the mapper's frame
             x, y = back[:2, :2] @ centre + back[:2, 3]
@@ -406,7 +451,7 @@ class TreeMapper:
             last_seen=track.last_seen,
             traits=tree.traits.method,
             kind=self._kind(tree),
-            height_top_seen=tree.top_seen,
+            height_top_seen=top_measured,
             width_sides_seen=sides,
             evidence=evidence.total if evidence.measured else None,
             texture_m=cues.mean("texture"),
@@ -526,14 +571,16 @@ class TreeMapper:
         world += traits_from_base[:3, 3]  # in place: the same sums, no second array
         own = centres.nearest_is(world[:, :2], tree_id)
         points, ring, world = _kept(own, cluster.points, cluster.ring, world)
+        # The ground under the cluster, carried into the world with the full attitude.
+        foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
+        ground_here = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
         if len(points):  # returns of its own were measured from here
             tree.add_view(view)
+            tree.top_z = max(tree.top_z, float(world[:, 2].max()))
+            tree.add_grounds(np.array([ground_here]))
         world_points = ground_world = None
         if outline:  # both methods keep the outline in the world frame (its centre)
-            world_points = world
-            # The ground under the cluster, carried into the world with the full attitude.
-            foot = np.array([cluster.centroid[0], cluster.centroid[1], cluster.ground_z])
-            ground_world = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
+            world_points, ground_world = world, ground_here
             if cluster.trunk is not None:
                 trunk = traits_from_base[:2, :3] @ cluster.trunk + traits_from_base[:2, 3]
                 if centres.trunk_is(trunk, tree_id):  # not a neighbour's
@@ -541,10 +588,19 @@ class TreeMapper:
         tree.traits.observe(points, ring, cluster.ground_z, world_points, ground_world, pose_sigma)
         # The cluster's top in view counts for this tree if that top is its own.
         if cluster.top_seen and own[int(np.argmax(cluster.points[:, 2]))]:
-            tree.top_seen = True
+            tree.add_tops(self._top_ray(cluster, traits_from_base))
         if np.isfinite(cluster.ndvi):
             tree.ndvi_sum += cluster.ndvi * len(cluster.points)
             tree.ndvi_count += len(cluster.points)
+
+    def _top_ray(self, cluster: Cluster, traits_from_base: np.ndarray) -> np.ndarray:
+        """`_Tree.tops`' row of a cluster whose top was in view: where the LiDAR stood and
+        the rise per metre of the beam above the top, in the traits frame (z up)."""
+        rotation, shift = traits_from_base[:3, :3], traits_from_base[:3, 3]
+        lidar = rotation @ self.T_base_lidar[:3, 3] + shift
+        beam = rotation @ cluster.beam_above
+        rise = beam[2] / max(math.hypot(beam[0], beam[1]), 1e-9)
+        return np.array([lidar[0], lidar[1], lidar[2], rise])
 
     def _merge_outlines(self, decisions, view_ids: set[int]) -> list[tuple[int, int]]:
         """Trees whose accumulated outlines share a centre (closer than the tracker's
@@ -645,7 +701,9 @@ class TreeMapper:
         tree.votes.absorb(gone.votes)
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
-        tree.top_seen = tree.top_seen or gone.top_seen
+        tree.add_tops(gone.tops)
+        tree.top_z = max(tree.top_z, gone.top_z)
+        tree.add_grounds(gone.grounds)
         tree.add_trunks(gone.trunks)
         tree.add_views(gone.views)
 

@@ -100,8 +100,8 @@ SCORE = decimals(3)  # vegetation evidence, shares
 
 LOWER_BOUND = ">"  # before a value that is a lower bound: `>2.55`
 HEIGHT_BOUND_LEGEND = (
-    "height >: a lower bound, the crown's top above the LiDAR's top beam in every scan "
-    "(height_top_seen false)"
+    "height >: a lower bound, the crown's top never bracketed within 5 % by the LiDAR's "
+    "beams (height_top_seen false)"
 )
 WIDTH_BOUND_LEGEND = (
     "width >: a lower bound, the crown seen from one side only, its far side hidden "
@@ -206,12 +206,13 @@ class Tree:
     traits NaN, no times) or "rejected" (an object seen as often as a tree that is not
     one: `reason` says why, see `pipeline.classify.REASONS`).
 
-    `height_top_seen`: whether the LiDAR's beams passed over the crown's top in some scan
-    (the height is then the top's); False: the crown went on above the top beam in every
-    scan and `height_m` is a lower bound; None where nobody judged it (a missing tree,
-    the baselines). `width_sides_seen`: 2 when the LiDAR saw the crown from both sides, 1
-    when from one side only (its far side hidden: `width_m` is a lower bound), None where
-    nobody judged it (`pipeline.mapper.sides_seen`).
+    `height_top_seen`: whether the height is measured: the crown's top bracketed within
+    `traits.top_tolerance` (5 %) of it, between the height and the lowest of the beams
+    that passed over it (`pipeline.mapper`); False: `height_m` is a lower bound (the crown
+    went on above the top beam, or no beam came down close enough onto its top); None
+    where nobody judged it (a missing tree, the baselines). `width_sides_seen`: 2 when the
+    LiDAR saw the crown from both sides, 1 when from one side only (its far side hidden:
+    `width_m` is a lower bound), None where nobody judged it (`pipeline.mapper.sides_seen`).
 
     The fields are declared in the constructor's positional order; each one's `position`
     is its place among the columns (field_id and row are the second and third there).
@@ -318,9 +319,10 @@ class Tree:
     height_top_seen: bool | None = column(
         15,
         FLAG,
-        "`true`: some scan's beam passed over the crown's top; `false`: the crown went on "
-        "above the LiDAR's top beam in every scan, `height_m` is a lower bound; empty when "
-        'not judged (a missing tree; docs/pipeline.md, "Heights the LiDAR cannot see")',
+        "`true`: the height is measured, the crown's top bracketed within 5 % by a beam "
+        "that passed over it; `false`: `height_m` is a lower bound (the top above the "
+        "LiDAR's top beam, or never bracketed that closely); empty when not judged (a "
+        'missing tree; docs/pipeline.md, "Heights the LiDAR cannot see")',
         default=None,
         sql_note="1, 0 (the height is a lower bound), NULL (not judged)",
     )

@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from treetraits.jit import kernel, kernel_layout, warm_up
+from treetraits.pipeline.medians import median_of_groups
 
 # The sensor's top beam, not the highest that hit something in a scan (over a young
 # grove the top beams may see only sky): every model read has 16 beams
@@ -52,6 +53,7 @@ class BeamsAbove:
         # Per return in the scan's order, for the clusters' own returns: what top_seen
         # worked out again for each cluster, the same values gathered.
         self._by_point = (x, y, z, bearing, span, ring)
+        self._elevations: np.ndarray | None = None  # each ring's, once a top is seen
 
     def top_seen(self, members: np.ndarray, window_rad: float, reach_m: float) -> bool:
         """Whether the beam above the cluster `members` (indices into the scan this was
@@ -68,6 +70,47 @@ class BeamsAbove:
             bearing, span, members, centre, window_rad, reach_m, self._bearing, self._range,
             start, end,
         )  # fmt: skip
+
+    def beam_above(
+        self, members: np.ndarray, window_rad: float, reach_m: float
+    ) -> np.ndarray | None:
+        """Where the beam above the cluster `members` pointed at its top's bearing (a unit
+        vector, the LiDAR's frame) when it passed over all of it (`top_seen`), else None.
+        The crown's top lies under that ray: with its highest return below, the two
+        bracket the top's height in this scan (`pipeline.mapper`, `height_top_seen`)."""
+        if not self.top_seen(members, window_rad, reach_m):
+            return None
+        x, y, z, _, _, rings = self._by_point
+        top, ring = _top_and_ring(z, rings, kernel_layout(members, np.int64))
+        elevation = self._elevation_above(int(ring))
+        if elevation is None:
+            return None
+        bearing = math.atan2(y[top], x[top])
+        flat = math.cos(elevation)
+        return np.array([flat * math.cos(bearing), flat * math.sin(bearing), math.sin(elevation)])
+
+    def _elevation_above(self, ring: int) -> float | None:
+        """The elevation (rad, the LiDAR's frame) of the ring above `ring`: its returns'
+        median in this scan; a ring that hit nothing (sky all round) continues the step
+        between `ring` and the nearest ring below it that hit something. None when
+        neither can be measured."""
+        if self._elevations is None:
+            x, y, z, _, _, rings = self._by_point
+            order = np.argsort(rings, kind="stable")  # each ring's returns one slice
+            self._elevations = median_of_groups(
+                np.arctan2(z[order], np.hypot(x[order], y[order])),
+                rings[order],
+                self.top_ring + 1,
+            )
+        above = self._elevations[ring + 1]
+        if math.isfinite(above):
+            return float(above)
+        below = np.flatnonzero(np.isfinite(self._elevations[:ring]))
+        here = self._elevations[ring]
+        if not len(below) or not math.isfinite(here):
+            return None
+        lower = int(below[-1])
+        return float(here + (here - self._elevations[lower]) / (ring - lower))
 
     def top_seen_numpy(self, members: np.ndarray, window_rad: float, reach_m: float) -> bool:
         """`top_seen` in NumPy calls: the formulation its kernels are held to (tests)."""

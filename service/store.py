@@ -6,10 +6,11 @@ Tables:
 - `trees`: the latest state of every tree (one row per tree, replaced on each update),
   its columns made from `Tree`'s table (pipeline/trees.py); `status` found, or missing
   for a field-map tree passed and not found (tree_id `missing:<field id>`, replaced at
-  each export); `height_top_seen` 1 when some scan's beam passed over the crown's top, 0
-  when its height is a lower bound, NULL unjudged; `width_sides_seen` 2 when the crown
-  was seen from both sides, 1 when from one side only (its width a lower bound), NULL
-  unjudged. A store written before a column was appended gets it, NULL.
+  each export); `height_top_seen` 1 when the height is measured (the crown's top
+  bracketed within 5 % by a beam that passed over it), 0 when it is a lower bound, NULL
+  unjudged; `width_sides_seen` 2 when the crown was seen from both sides, 1 when from one
+  side only (its width a lower bound), NULL unjudged. A store written before a column
+  was appended gets it, NULL.
 - `rejected`: objects seen as often as trees that are not trees, with the reason
   (replaced at each export).
 - `observations`: every per-scan observation of a tree or object (append only).

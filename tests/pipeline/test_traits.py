@@ -255,6 +255,24 @@ def test_traits_within_tolerance_of_the_truth(method):
     assert np.mean([abs(h) for _, h in err.values()]) < 14.7
 
 
+@pytest.mark.parametrize("method", ["paper", "robust"])
+def test_a_height_called_measured_is_within_5_percent_of_the_truth(method):
+    """`height_top_seen`: the front trees' tops came under the beams of the approach from
+    9.5 m, and each ray that passed over them bounds them from above: called measured
+    (1.5-2.6 % low, measured). The others (seen from beside, or from behind the middle
+    trees) were never bracketed within 5 %: lower bounds, among them the one 6.9 % low."""
+    mapper, _ = mapped(method)
+    truth = {t.tree_id: t for t in grid_drive().truth}
+    found, _ = match(mapper.trees(), list(truth.values()))
+    measured = set()
+    for tree_id, trees in found.items():
+        tree = max(trees, key=lambda tree: tree.observations)
+        if tree.height_top_seen:
+            measured.add(tree_id)
+            assert abs(tree.height_m / truth[tree_id].height - 1) <= 0.05, tree_id
+    assert measured >= {"R1T1", "R2T1"}
+
+
 @functools.cache
 def ghost_run(method: str) -> TreeMapper:
     data = grid_drive()

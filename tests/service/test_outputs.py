@@ -55,10 +55,25 @@ def survey(method: str, retire_m: float, out_dir):
     return mapper, writer, results, far
 
 
+@pytest.fixture(scope="module")
+def surveyed(tmp_path_factory):
+    """`survey` of a method and retire_m, run once for the module's tests (they only read
+    it) into a folder of its own: the returns of `survey` and that folder."""
+    done = {}
+
+    def run(method: str, retire_m: float):
+        if (method, retire_m) not in done:
+            out_dir = tmp_path_factory.mktemp(f"{method}-retire-{retire_m:g}") / "run"
+            done[method, retire_m] = (*survey(method, retire_m, out_dir), out_dir)
+        return done[method, retire_m]
+
+    return run
+
+
 @pytest.mark.parametrize("method", ["paper", "robust"])
-def test_trees_out_of_range_are_finalised_once_and_unchanged(method, tmp_path):
-    kept, _, kept_results, _ = survey(method, 0.0, tmp_path / "kept")
-    finalised, _, results, far = survey(method, 50.0, tmp_path / "finalised")
+def test_trees_out_of_range_are_finalised_once_and_unchanged(method, surveyed):
+    kept, _, kept_results, _, _ = surveyed(method, 0.0)
+    finalised, _, results, far, _ = surveyed(method, 50.0)
     # While the robot is among the trees none is finalised, and every scan's outcome is
     # the same as when all are kept.
     assert all(r.retired == [] for r in results)
@@ -73,15 +88,14 @@ def test_trees_out_of_range_are_finalised_once_and_unchanged(method, tmp_path):
     assert repr(finalised.trees({ids[0]})) == repr([kept.trees()[0]])
 
 
-def test_outputs_are_the_same_with_trees_finalised(tmp_path):
-    survey("paper", 0.0, tmp_path / "kept")
-    survey("paper", 50.0, tmp_path / "finalised")
+def test_outputs_are_the_same_with_trees_finalised(surveyed):
+    runs = {"kept": surveyed("paper", 0.0)[-1], "finalised": surveyed("paper", 50.0)[-1]}
     for name in ("trees.csv", "trees.geojson", "rejected.geojson"):
-        kept = (tmp_path / "kept" / name).read_bytes()
-        assert (tmp_path / "finalised" / name).read_bytes() == kept, name
+        kept = (runs["kept"] / name).read_bytes()
+        assert (runs["finalised"] / name).read_bytes() == kept, name
     tables = []
     for run in ("kept", "finalised"):
-        with sqlite3.connect(tmp_path / run / "traits.sqlite") as db:
+        with sqlite3.connect(runs[run] / "traits.sqlite") as db:
             tables.append(
                 (
                     db.execute("SELECT * FROM trees ORDER BY tree_id").fetchall(),
@@ -101,7 +115,7 @@ def test_retire_m_must_keep_trees_in_view():
 
 
 @pytest.mark.parametrize("per_write", [1000, 1, 2, 3])
-def test_geojson_is_json_dumps_text_and_reused(tmp_path, monkeypatch, per_write):
+def test_geojson_is_json_dumps_text_and_reused(tmp_path, monkeypatch, per_write, surveyed):
     """trees.geojson's text is json.dump(indent=1)'s byte for byte, when records are
     reused from the previous write too, and however many features are joined per write
     (a slice boundary between any two of them)."""
@@ -109,7 +123,7 @@ def test_geojson_is_json_dumps_text_and_reused(tmp_path, monkeypatch, per_write)
     from treetraits.pipeline.georef import RenderCache
 
     monkeypatch.setattr(georef, "FEATURES_PER_WRITE", per_write)
-    _, writer, _, _ = survey("paper", 0.0, tmp_path / "run")
+    _, writer, _, _, _ = surveyed("paper", 0.0)
     trees = writer.georeferenced()
     assert len(trees) >= 4
     cache = RenderCache()

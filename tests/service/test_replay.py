@@ -164,21 +164,21 @@ def test_bad_options_are_refused(survey, tmp_path):
     )
 
 
-def test_replay_takes_the_service_config(survey, tmp_path, capsys):
+def test_replay_takes_the_service_config(block, tmp_path, capsys):
     """`--config`: the same TOML file as `treetraits run`; its gates and pipeline sections
     reach the replay, and a bad key stops it before anything is written."""
     config = tmp_path / "config.toml"
     # Seen in more scans than the drive has: no tree is reported, the store still fills.
     config.write_text("[output]\nmin_observations = 100000\n[traits]\nmethod = 'robust'\n")
     out = tmp_path / "strict"
-    assert main(["replay", str(survey.recording), "--out", str(out), "--config", str(config)]) == 0
+    assert main(["replay", str(block.recording), "--out", str(out), "--config", str(config)]) == 0
     assert "0 trees" in capsys.readouterr().out
     facts = dict(sqlite3.connect(out / "traits.sqlite").execute("SELECT key, value FROM run"))
     assert facts["traits"] == "robust"
 
     config.write_text("[tracking]\nth_p = 2.0\n")
     bad = tmp_path / "bad"
-    assert main(["replay", str(survey.recording), "--out", str(bad), "--config", str(config)]) == 2
+    assert main(["replay", str(block.recording), "--out", str(bad), "--config", str(config)]) == 2
     assert "tracking.th_p and th_h must be in [0, 1]" in capsys.readouterr().err
     assert not bad.exists()
 
