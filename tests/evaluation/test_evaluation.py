@@ -178,6 +178,22 @@ def test_eval_end_to_end_on_one_small_case(tmp_path, monkeypatch, capsys):
         ("small", "1", "paper"),
         ("small", "1", "rph"),
     ]
+    # Driven down the lane between the two trees: each seen from its one side, its width
+    # a lower bound (the baseline judges no sides).
+    paper, rph = rows
+    assert (paper["sides_seen"], paper["one_sided"], paper["mape_width_sides_seen"]) == (
+        "0",
+        "2",
+        "",
+    )
+    assert (rph["sides_seen"], rph["one_sided"]) == ("0", "0")
+    assert summary["widths_sides_seen"] == 0
+    (line,) = [
+        line
+        for line in (tmp_path / "table.md").read_text().splitlines()
+        if line.startswith("| small | paper | 2 / 2 |")
+    ]
+    assert line.endswith("| 2 / 2 |")  # the detections table: widths one-sided / found
     png = (tmp_path / "maps" / "small.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
     # A rerun reuses the recording (one method: the replay is not what is tested here).

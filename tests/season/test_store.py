@@ -296,7 +296,7 @@ def test_lower_bounds_are_kept_marked_and_left_out_of_the_height_change(tmp_path
     assert "width >2.50 m  height >2.00 m" in text  # June's
     assert "width 2.50 m  height 2.79 m" in text  # May's, unmarked
     assert "width >: a lower bound, the crown seen from one side only" in text
-    assert "height >: a lower bound, the crown's top above the LiDAR's top beam" in text
+    assert "height >: a lower bound, the crown's top never bracketed within 5 %" in text
     assert main(["season", "trees", "--season", str(path), "--json"]) == 0
     surveys = json.loads(capsys.readouterr().out)["trees"][0]["surveys"]
     assert [(s["height_top_seen"], s["width_sides_seen"]) for s in surveys] == [

@@ -81,6 +81,9 @@ class Detection:
     # The replay's `height_top_seen` (None: not in its output): False marks a height that
     # is a lower bound, the crown's top above the LiDAR's view in every scan.
     height_top_seen: bool | None = None
+    # The replay's `width_sides_seen` (None: not in its output or not judged): 1 marks a
+    # width that is a lower bound, the crown seen from one side of its row only.
+    width_sides_seen: int | None = None
 
 
 @dataclass(frozen=True)
@@ -159,6 +162,11 @@ class RowStats:
     # over them alone (NaN if none): what the LiDAR's view allowed.
     top_seen: int = 0
     mape_height_top_seen: float = math.nan
+    # Of the found trees, those seen from both sides of their row, and the width MAPE
+    # over them alone (NaN if none); the others' widths are lower bounds.
+    sides_seen: int = 0
+    mape_width_sides_seen: float = math.nan
+    one_sided: int = 0  # found trees whose width is a lower bound (seen from one side)
 
 
 def _ape(estimate: float, truth: float) -> float:
@@ -254,6 +262,7 @@ def row_stats(scores: Iterable[RunScore], rows: Sequence[str]) -> list[RowStats]
         widths = [t.detection.width_m for t in hits]
         heights = [t.detection.height_m for t in hits]
         seen = [t for t in hits if t.detection.height_top_seen]
+        both = [t for t in hits if t.detection.width_sides_seen == 2]
         out.append(
             RowStats(
                 row=row,
@@ -269,6 +278,9 @@ def row_stats(scores: Iterable[RunScore], rows: Sequence[str]) -> list[RowStats]
                 mape_height=_mean([t.height_ape for t in hits]),
                 top_seen=len(seen),
                 mape_height_top_seen=_mean([t.height_ape for t in seen]),
+                sides_seen=len(both),
+                mape_width_sides_seen=_mean([t.width_ape for t in both]),
+                one_sided=sum(t.detection.width_sides_seen == 1 for t in hits),
             )
         )
     return out
@@ -359,6 +371,7 @@ def detections_from_trees(trees: Iterable) -> list[Detection]:
             getattr(t, "status", None),
             getattr(t, "field_id", None),
             getattr(t, "height_top_seen", None),
+            getattr(t, "width_sides_seen", None),
         )
         for t in trees
     ]

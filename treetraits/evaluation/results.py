@@ -59,6 +59,10 @@ class MethodSummary:
     # how many found trees that is: the rest have a height that is a lower bound.
     worst_row_mape_height_top_seen: float = math.nan
     heights_top_seen: int = 0
+    # Widths over the found trees seen from both sides (rows with none left out), and
+    # how many that is: the rest have a width that is a lower bound.
+    worst_row_mape_width_sides_seen: float = math.nan
+    widths_sides_seen: int = 0
 
 
 def score(evaluation: Evaluation, gate_m: float = DEFAULT_GATE_M) -> list[CaseMethodResult]:
@@ -122,6 +126,10 @@ def summarize(results: list[CaseMethodResult], methods: tuple[str, ...]) -> list
                     [row.mape_height_top_seen for row in rows if row.top_seen]
                 ),
                 heights_top_seen=sum(row.top_seen for row in rows),
+                worst_row_mape_width_sides_seen=_worst(
+                    [row.mape_width_sides_seen for row in rows if row.sides_seen]
+                ),
+                widths_sides_seen=sum(row.sides_seen for row in rows),
             )
         )
     return out
@@ -155,6 +163,8 @@ def to_json(evaluation: Evaluation, results: list[CaseMethodResult]) -> dict:
         "s_per_scan": _round(best.s_per_scan, 4),
         "worst_row_mape_height_top_seen": _round(best.worst_row_mape_height_top_seen),
         "heights_top_seen": best.heights_top_seen,
+        "worst_row_mape_width_sides_seen": _round(best.worst_row_mape_width_sides_seen),
+        "widths_sides_seen": best.widths_sides_seen,
         "methods": {
             s.method: {
                 "worst_row_mape_width": _round(s.worst_row_mape_width),
@@ -167,6 +177,8 @@ def to_json(evaluation: Evaluation, results: list[CaseMethodResult]) -> dict:
                 "s_per_scan": _round(s.s_per_scan, 4),
                 "worst_row_mape_height_top_seen": _round(s.worst_row_mape_height_top_seen),
                 "heights_top_seen": s.heights_top_seen,
+                "worst_row_mape_width_sides_seen": _round(s.worst_row_mape_width_sides_seen),
+                "widths_sides_seen": s.widths_sides_seen,
             }
             for s in summaries
         },
@@ -222,6 +234,9 @@ def row_json(case: Case, row: RowStats) -> dict:
         "mape_height": _round(row.mape_height),
         "top_seen": row.top_seen,
         "mape_height_top_seen": _round(row.mape_height_top_seen),
+        "sides_seen": row.sides_seen,
+        "mape_width_sides_seen": _round(row.mape_width_sides_seen),
+        "one_sided": row.one_sided,
         "paper_mape_width_ours": paper.width_ours if paper else None,
         "paper_mape_width_rph": paper.width_rph if paper else None,
         "paper_mape_height_ours": paper.height_ours if paper else None,

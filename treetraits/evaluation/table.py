@@ -41,6 +41,11 @@ CSV_COLUMNS = (
     # Heights (appended): found trees whose top was in view, and the height MAPE over them.
     "top_seen",
     "mape_height_top_seen",
+    # Widths (appended): found trees seen from both sides of their row, the width MAPE
+    # over them, and the found trees seen from one side only (their widths lower bounds).
+    "sides_seen",
+    "mape_width_sides_seen",
+    "one_sided",
 )
 
 
@@ -122,8 +127,10 @@ def markdown(
                 ]
                 lines.append(_md_row(cells))
         lines.append("")
-    header = ["case", "method", "found / trees", "duplicates", "false pos.", "RMSE m", "s/scan"]
-    lines += ["## Detections, position and time", "", _md_row(header), _md_row(["---"] * 7)]
+    header = ["case", "method", "found / trees", "duplicates", "false pos.", "RMSE m", "s/scan",
+              "heights measured", "widths one-sided"]  # fmt: skip
+    lines += ["## Detections, position and time", "", _md_row(header)]
+    lines.append(_md_row(["---"] * len(header)))
     for r in results:
         lines.append(
             _md_row(
@@ -135,6 +142,8 @@ def markdown(
                     str(r.false_positives),
                     _cell(r.position_rmse_m, 3),
                     _cell(r.s_per_scan, 4),
+                    f"{sum(row.top_seen for row in r.rows)} / {r.trees_found}",
+                    f"{sum(row.one_sided for row in r.rows)} / {r.trees_found}",
                 ]
             )
         )
@@ -162,6 +171,8 @@ def markdown(
         "worst row H %",
         "worst row H % (top seen)",
         "tops seen / found",
+        "worst row W % (both sides)",
+        "both sides / found",
         "found / trees",
         "dup.",
         "false pos.",
@@ -178,6 +189,8 @@ def markdown(
                     _cell(s.worst_row_mape_height, 2),
                     _cell(s.worst_row_mape_height_top_seen, 2),
                     f"{s.heights_top_seen} / {s.trees_found}",
+                    _cell(s.worst_row_mape_width_sides_seen, 2),
+                    f"{s.widths_sides_seen} / {s.trees_found}",
                     f"{s.trees_found} / {s.trees_total}",
                     str(s.duplicates),
                     str(s.false_positives),
@@ -190,8 +203,11 @@ def markdown(
         "",
         "Paper, worst simulated rows: width 12.14 %, height 14.71 % (its method); "
         "0.22 s per detection on the Xavier (RPH 0.53 s).",
-        "top seen: found trees whose crown top some scan's beam passed over; the others' "
-        "heights are lower bounds (docs/pipeline.md, 'Heights the LiDAR cannot see').",
+        "top seen: found trees whose height is measured to 5 % (the crown's top bracketed by "
+        "the beams that passed over it); the others' heights are lower bounds "
+        "(docs/pipeline.md, 'Heights the LiDAR cannot see'). both sides: found trees seen "
+        "from both sides of their row; the others' widths are lower bounds ('Widths seen "
+        "from one side').",
         "s/scan here: wall time of the whole replay (decode, localisation, NDVI, fusion, "
         "detection, tracking, traits, store) divided by the scans, on this machine.",
         "",
