@@ -86,7 +86,7 @@ class TrackedTree:
     # "tree", or why it is not one (`pipeline.classify.REASONS`), by its scans' majority
     kind: str = "tree"
     # Its height is measured: a beam that passed over its top (`pipeline.visibility`)
-    # brackets the top within `traits.top_tolerance` of it (`_Tree.top_bound`); else its
+    # brackets the top within `traits.top_tolerance` of it (`_Tree.height_measured`); else its
     # height is a lower bound.
     height_top_seen: bool = False
     # 2: the LiDAR saw the crown from both sides (`sides_seen`); 1: from one side only, so
@@ -119,7 +119,7 @@ class _Tree:
     ndvi_sum: float = 0.0
     ndvi_count: int = 0
     # One row per scan that had its top in view (the traits frame): the LiDAR's x, y, z
-    # and the rise per metre of the beam above its top (`top_bound`).
+    # and the rise per metre of the beam above its top (`height_measured`).
     tops: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
     # The highest of its own returns in any scan (the traits frame's z): its top is
     # at least that high.

@@ -413,12 +413,12 @@ def test_the_points_decode_to_the_scans_within_the_quantisation_step(survey, vie
 
 
 def test_a_late_first_fix_keeps_map_where_the_run_began(tmp_path):
-    """No fix for the first 14 s: the run maps in odom, then moves its whole map to UTM
+    """No fix for the first 12 s: the run maps in odom, then moves its whole map to UTM
     (tests/service/test_replay.py, the same twin). map stays where the run began: the
     poses after the move are taken back into odom (before: they jumped 3,787 km to their
     UTM coordinates), and the trees, in UTM at the end, come back through map_from_world."""
     survey = twin_survey(
-        SurveySettings(goal=16.0, seed=4, gnss=GnssSettings(outages=((0.0, 14.0),)))
+        SurveySettings(goal=12.0, seed=4, gnss=GnssSettings(outages=((0.0, 12.0),)))
     )
     view = tmp_path / "view.mcap"
     result = cli("export", "foxglove", str(survey.recording), "--out", str(view), "--json")

@@ -288,11 +288,11 @@ def test_a_real_capture_with_a_real_nmea_log_is_placed_by_the_logs_utc(tmp_path,
 
 
 def test_a_late_first_fix_moves_the_whole_map_to_utm(tmp_path):
-    """No fix for the first 14 s (a receiver still converging): the run maps in odom after
+    """No fix for the first 12 s (a receiver still converging): the run maps in odom after
     the 10 s wait, then moves its whole map to UTM when the fix and a heading come. Every
     tree is placed and matched once, the ones mapped before the fix included."""
-    gnss = GnssSettings(outages=((0.0, 14.0),))
-    survey = twin_survey(SurveySettings(goal=16.0, seed=4, gnss=gnss))
+    gnss = GnssSettings(outages=((0.0, 12.0),))
+    survey = twin_survey(SurveySettings(goal=12.0, seed=4, gnss=gnss))
     report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
     assert report.summary["world_frame"] == "utm"
     assert report.summary["reanchored_at"] is not None
