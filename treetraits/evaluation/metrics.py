@@ -79,7 +79,7 @@ class Detection:
     status: str | None = None  # the replay's `status` column if it has one (found/missing)
     field_id: str | None = None
     # The replay's `height_top_seen` (None: not in its output): False marks a height that
-    # is a lower bound, the crown's top above the LiDAR's view in every scan.
+    # is a lower bound, the crown's top not bracketed within 5 % by the LiDAR's beams.
     height_top_seen: bool | None = None
     # The replay's `width_sides_seen` (None: not in its output or not judged): 1 marks a
     # width that is a lower bound, the crown seen from one side of its row only.

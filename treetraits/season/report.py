@@ -76,8 +76,9 @@ class MapTree:
     ndvi: float | None
     status: str  # found or missing
     width_change: float | None = None  # m per 30 days (season)
-    # False: the crown's top was above the LiDAR's view in every scan, so the height is a
-    # lower bound; None where the store does not say (an older run or season survey).
+    # False: the crown's top was never bracketed within 5 % by the LiDAR's beams, so the
+    # height is a lower bound; None where the store does not say (an older run or season
+    # survey).
     height_top_seen: bool | None = None
     # 1: the crown was seen from one side only, so the width is a lower bound; 2: both
     # sides; None where the store does not say.
@@ -695,7 +696,8 @@ WIDTH_BOUND_TEXT = (
     "the crown was seen from one side only, its far side hidden: the width is at least that"
 )
 HEIGHT_BOUND_TEXT = (
-    "the crown's top was above the LiDAR's view in every scan: the height is at least that"
+    "the crown's top was not measured to 5 % (above the LiDAR's view, or bracketed less "
+    "closely by its beams): the height is at least that"
 )
 ONE_SIDED_CHANGE = (
     "(1 side): the change is from a first or last width seen from one side only; it "
