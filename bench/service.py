@@ -32,8 +32,10 @@ live run (nothing else running), its CPU per recorded second. `cpu_vs_replay` = 
 service's CPU per live second / the replay's per recorded second: what being live
 costs on top of the pipeline (1.0 = nothing).
 
-Last line, exactly: `service_lost=N cpu_pct=C rss_peak_mb=M rss_growth=G
-latency_ms_p50=A latency_ms_p99=B cpu_vs_replay=R` (no line breaks).
+Last line, exactly: `service_lost=N cpu_pct=C busiest_thread_pct=T rss_peak_mb=M
+latency_ms_p50=A latency_ms_p99=B rss_growth=G cpu_vs_replay=R` (no line breaks);
+`busiest_thread_pct`: the service's busiest thread's CPU (from /proc/PID/task), % of one
+core: what one core of a slower computer must keep up with.
 
     .venv/bin/python bench/service.py [--seconds 60] [--record] [--recording REC.mcap]
         [--busy N]
@@ -514,9 +516,13 @@ def report(run: LiveRun, label: str, replay_cpu_per_s: float) -> dict[str, float
         print(f"  recorded {mb:.1f} MB ({mb / run.seconds:.2f} MB/s)")
     if run.exit_code not in (0, None):
         print(f"  service log tail:\n{run.log_tail}")
+    busiest_pct = float("nan")
+    if run.thread_cpu_s and run.seconds:
+        busiest_pct = 100 * max(run.thread_cpu_s.values()) / run.seconds
     return {
         "lost": float("nan") if lost is None else lost,
         "cpu_pct": cpu_pct,
+        "busiest_thread_pct": busiest_pct,
         "rss_peak_mb": peak,
         "rss_growth": growth,
         "p50": statistics.median(lat) if lat else float("nan"),
@@ -570,8 +576,9 @@ def main() -> None:
     f = figures[0]
     print(
         f"service_lost={f['lost']:.0f} cpu_pct={f['cpu_pct']:.1f} "
-        f"rss_peak_mb={f['rss_peak_mb']:.0f} rss_growth={f['rss_growth']:.2f} "
-        f"latency_ms_p50={f['p50']:.0f} latency_ms_p99={f['p99']:.0f} cpu_vs_replay={f['vs']:.2f}"
+        f"busiest_thread_pct={f['busiest_thread_pct']:.1f} rss_peak_mb={f['rss_peak_mb']:.0f} "
+        f"latency_ms_p50={f['p50']:.0f} latency_ms_p99={f['p99']:.0f} "
+        f"rss_growth={f['rss_growth']:.2f} cpu_vs_replay={f['vs']:.2f}"
     )
 
 
