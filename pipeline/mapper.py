@@ -153,9 +153,7 @@ class _Tree:
             self.trunks = self.trunks[::2]
 
     def add_tops(self, tops: np.ndarray) -> None:
-        self.tops = np.concatenate([self.tops, np.reshape(tops, (-1, 4))])
-        if len(self.tops) > _MAX_VIEWS:  # every other: a scan's ray lies close to the next
-            self.tops = self.tops[::2]
+        self.tops = _thinned(self.tops, tops)  # a scan's ray lies close to the next
 
     def add_grounds(self, z: np.ndarray) -> None:
         self.grounds = np.concatenate([self.grounds, np.ravel(z)])
@@ -190,9 +188,14 @@ class _Tree:
         self.add_views(view)
 
     def add_views(self, views: np.ndarray) -> None:
-        self.views = np.concatenate([self.views, np.reshape(views, (-1, 3))])
-        if len(self.views) > _MAX_VIEWS:
-            self.views = self.views[::2]  # every other: the places along the path stay
+        self.views = _thinned(self.views, views)  # the places along the path stay
+
+
+def _thinned(kept: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """`rows` appended to `kept` (rows of its width); past `_MAX_VIEWS` rows, every other
+    one kept."""
+    out = np.concatenate([kept, np.reshape(rows, (-1, kept.shape[1]))])
+    return out[::2] if len(out) > _MAX_VIEWS else out
 
 
 # Verdicts whose tracks take no side in the Voronoi cut (`_Centres`).

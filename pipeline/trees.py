@@ -110,13 +110,21 @@ WIDTH_BOUND_LEGEND = (
 
 
 def height_bounded(height_top_seen: bool | None) -> bool:
-    """The height is a lower bound (False: the top never in view; None: not judged)."""
+    """The height is a lower bound (False: not measured to 5 %; None: not judged)."""
     return height_top_seen is False
 
 
 def width_bounded(width_sides_seen: int | None) -> bool:
     """The width is a lower bound (1: one side seen; None: not judged)."""
     return width_sides_seen == 1
+
+
+def marked(value: float | None, bound: bool) -> str:
+    """A trait as the printed tables show it: 2 decimals, `>` before a lower bound; `-`
+    when not measured (None or NaN)."""
+    if value is None or not math.isfinite(value):
+        return "-"
+    return f"{LOWER_BOUND if bound else ''}{value:.2f}"
 
 
 # ---- the table -------------------------------------------------------------------------

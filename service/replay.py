@@ -28,10 +28,10 @@ from treetraits.files import iso_utc
 from treetraits.pipeline.fieldmap import load_field_map, parse_geojson
 from treetraits.pipeline.trees import (
     HEIGHT_BOUND_LEGEND,
-    LOWER_BOUND,
     WIDTH_BOUND_LEGEND,
     Tree,
     height_bounded,
+    marked,
     width_bounded,
 )
 from treetraits.service.config import ServiceConfig
@@ -376,8 +376,8 @@ def format_table(trees: list[Tree]) -> str:
             traits = f"{'missing':>27}"
         else:
             ndvi = f"{t.ndvi:5.2f}" if t.ndvi is not None else f"{'-':>5}"
-            width = _bounded(t.width_m, width_bounded(t.width_sides_seen))
-            height = _bounded(t.height_m, height_bounded(t.height_top_seen))
+            width = marked(t.width_m, width_bounded(t.width_sides_seen))
+            height = marked(t.height_m, height_bounded(t.height_top_seen))
             traits = f"{width:>7} {height:>8} {ndvi} {t.observations:4d}"
         lines.append(
             f"{t.tree_id or '-':>5} {t.field_id or '-':>8} {t.row or '-':>6} {east} {north} "
@@ -389,8 +389,3 @@ def format_table(trees: list[Tree]) -> str:
     if any(height_bounded(t.height_top_seen) for t in found):
         lines.append(HEIGHT_BOUND_LEGEND)
     return "\n".join(lines)
-
-
-def _bounded(value: float, bound: bool) -> str:
-    """A trait with 2 decimals, marked `>` where it is a lower bound."""
-    return f"{LOWER_BOUND if bound else ''}{value:.2f}"

@@ -96,6 +96,7 @@ def format_history(trees) -> str:
         HEIGHT_BOUND_LEGEND,
         WIDTH_BOUND_LEGEND,
         height_bounded,
+        marked,
         width_bounded,
     )
 
@@ -107,9 +108,9 @@ def format_history(trees) -> str:
             traits = (
                 "missing"
                 if v.status == "missing"
-                else f"width {_cell(v.width_m, width_bounded(v.width_sides_seen))} m  "
-                f"height {_cell(v.height_m, height_bounded(v.height_top_seen))} m  "
-                f"NDVI {_cell(v.ndvi)}"
+                else f"width {marked(v.width_m, width_bounded(v.width_sides_seen))} m  "
+                f"height {marked(v.height_m, height_bounded(v.height_top_seen))} m  "
+                f"NDVI {marked(v.ndvi, False)}"
             )
             lines.append(f"  {iso_utc(v.t_start)[:16]}  survey {v.survey_id}  {traits}")
     if not lines:
@@ -130,12 +131,3 @@ UNKNOWN_FLAGS = (
     "it, or by RPH): not known whether they are lower bounds (`batch --force` processes "
     "their recordings again)"
 )
-
-
-def _cell(value: float | None, bound: bool = False) -> str:
-    """A trait with 2 decimals, `>` before a lower bound; `-` when not measured."""
-    from treetraits.pipeline.trees import LOWER_BOUND
-
-    if value is None:
-        return "-"
-    return f"{LOWER_BOUND if bound else ''}{value:.2f}"

@@ -34,6 +34,7 @@ from treetraits.pipeline.trees import (
     LOWER_BOUND,
     TREE_FIELD,
     height_bounded,
+    marked,
     width_bounded,
 )
 
@@ -566,8 +567,8 @@ def render_html(data: ReportData, colour: str = "height") -> str:
                     r["row"],
                     r["found"],
                     r["missing"],
-                    _bounded(r["width_m"], r["width_bound"]),
-                    _bounded(r["height_m"], r["height_bound"]),
+                    marked(r["width_m"], r["width_bound"]),
+                    marked(r["height_m"], r["height_bound"]),
                     _f(r["ndvi"]),
                 ]
                 for r in row_table(data.trees)
@@ -784,8 +785,8 @@ def _reasons(counts: dict[str, int]) -> str:
 def _traits(tree: MapTree) -> list[str]:
     """Width, height and NDVI; a lower bound marked ">" (as `treetraits replay` prints it)."""
     return [
-        _bounded(tree.width_m, _width_bound(tree)),
-        _bounded(tree.height_m, _height_bound(tree)),
+        marked(tree.width_m, _width_bound(tree)),
+        marked(tree.height_m, _height_bound(tree)),
         _f(tree.ndvi),
     ]
 
@@ -796,11 +797,6 @@ def _width_bound(tree: MapTree) -> bool:
 
 def _height_bound(tree: MapTree) -> bool:
     return height_bounded(tree.height_top_seen) and tree.height_m is not None
-
-
-def _bounded(value: float | None, bound: bool) -> str:
-    text = _f(value)
-    return f"{LOWER_BOUND}{text}" if bound and text != "-" else text
 
 
 def _width_change(tree: MapTree) -> str:
