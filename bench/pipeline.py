@@ -55,7 +55,7 @@ from treetraits.sim.orchard import Ground, grid_orchard, ground_mesh, tree_mesh 
 
 CALIBRATION = ROOT / "tests" / "fixtures" / "citrusfarm_calib" / "citrusfarm_calibration_v1.json"
 LATENCY_NS = 200_000
-STAGES = ("crop", "ground", "ndvi", "ndvi_check", "voxel", "stems", "cluster", "features")
+STAGES = ("crop", "mixed", "ground", "ndvi", "ndvi_check", "voxel", "stems", "cluster", "features")
 STAGES += ("tracking", "traits")
 
 

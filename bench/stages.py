@@ -60,7 +60,17 @@ WRAPPED = (
 )  # fmt: skip
 
 # The mapper's StageClock laps (detection, then _map's), shown under their parent.
-DETECT_LAPS = ("crop", "ground", "ndvi", "ndvi_check", "voxel", "stems", "cluster", "features")
+DETECT_LAPS = (
+    "crop",
+    "mixed",
+    "ground",
+    "ndvi",
+    "ndvi_check",
+    "voxel",
+    "stems",
+    "cluster",
+    "features",
+)
 MAP_LAPS = ("tracking", "traits")
 
 

@@ -139,6 +139,12 @@ class ClusterConfig:
     # cluster per ring, and stay below the gap between neighbouring crowns (> 1 m in
     # groves planted 4-6 m apart). Swept 0.3-0.6 in docs/pipeline.md.
     tolerance_m: float = 0.5
+    # A return lying between two surfaces a jump of more than `tolerance_m` apart on its
+    # ring, this far off each (three times the VLP-16's 3 cm range accuracy), with each
+    # surface going on beyond it, is a mixed return (a beam half on an edge, half behind
+    # it) and is left out before clustering: it linked an object to the wall behind it
+    # on a real indoor capture (`pipeline.mixed`). 0 keeps every return.
+    mixed_offset_m: float = 0.1
     # Size limits in voxels. 10: a far crown seen by two rings is ~30 voxels; a post,
     # a trunk alone, a few leaves are fewer. 20000: far above one tree's visible side
     # (300-600 for a 2.7 m crown), only a wall or a building is bigger.

@@ -34,6 +34,7 @@ from treetraits.pipeline.config import (
     DetectionConfig,
     GroundConfig,
 )
+from treetraits.pipeline.mixed import mixed_returns
 from treetraits.pipeline.stems import StemSearch, stem_of_voxels
 from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
 from treetraits.pipeline.understorey import join_understorey
@@ -345,10 +346,18 @@ def detect(
     counts = {"points": len(points)}
     # Robot-relative box: the far field is too sparse to cluster and the robot is not a tree.
     xyz, keep = crop(points, T_base_lidar, config.crop)
-    ring = points["ring"][keep]
-    source = keep  # each kept return's index in `points`
     counts["cropped"] = len(xyz)
     clock.lap("crop")
+    # A return between an object's edge and what stands behind it links the two
+    # (`pipeline.mixed`): read along the whole rings, left out of what the box kept.
+    mixed = mixed_returns(points, config.cluster.tolerance_m, config.cluster.mixed_offset_m)
+    clean = ~mixed[keep]
+    counts["mixed"] = int(len(keep) - clean.sum())
+    if counts["mixed"]:
+        xyz, keep = xyz[clean], keep[clean]
+    ring = points["ring"][keep]
+    source = keep  # each kept return's index in `points`
+    clock.lap("mixed")
 
     # Height above the ground under each point, not z, tells ground from tree: the
     # terrain follows slopes, furrows and beds (`pipeline.terrain`).

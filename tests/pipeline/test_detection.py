@@ -413,6 +413,7 @@ def test_stage_times_are_reported_when_asked(tree_scan):
     detect(tree_scan.points, None, DEFAULT_T_BASE_LIDAR, DetectionConfig(), stage_ms)
     assert set(stage_ms) == {
         "crop",
+        "mixed",
         "ground",
         "ndvi_check",
         "voxel",
