@@ -172,7 +172,7 @@ def lidar_publish_time(payload: bytes, t_host: int) -> int:
     else:
         return t_host
     toh_us = int.from_bytes(payload[offset : offset + 4], "little")
-    return int(resolve_hour(np.array([toh_us]), np.array([t_host]))[0])
+    return resolve_hour_one(toh_us, int(t_host))  # once per packet: no NumPy calls
 
 
 # The kernels' constants (numba freezes module globals when it compiles).
