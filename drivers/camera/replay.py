@@ -357,6 +357,11 @@ class RecordingSource(_ReplaySource):
         # A chunk skipped as damaged is reported as a cut is: data was lost.
         self.stats.truncated = self._reader.truncated or self._reader.lost_data
 
+    @property
+    def recording(self):
+        """The recording's reader: what of it could not be read (treetraits/damage.py)."""
+        return self._reader
+
     def close(self) -> None:
         super().close()
         self._reader.close()

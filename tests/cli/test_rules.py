@@ -6,7 +6,9 @@ real SQLite stores, the real ROS 2 bag of tests/fixtures."""
 
 from __future__ import annotations
 
+import json
 import shlex
+import shutil
 import time
 from pathlib import Path
 
@@ -170,10 +172,11 @@ def test_an_existing_file_output_is_exit_4_and_kept(survey, tmp_path, capsys):
 
 def test_every_command_that_reads_a_cut_recording_says_so_exit_3(cut, tmp_path, capsys):
     """`export foxglove` of a recording cut in half exited 0 with no word, and so did
-    `lidar info`, `lidar export`, `nmea info`, `fuse` and `play`: now as `replay`, one
-    DATA LOSS line on stderr naming the recording, exit 3, and --allow-damaged accepts it
-    (exit 0) with the same line. What was read is used."""
+    `lidar info`, `lidar export`, `nmea info`, `fuse`, `play`, `camera info` and `camera
+    grab`: now as `replay`, one DATA LOSS line on stderr naming the recording, exit 3, and
+    --allow-damaged accepts it (exit 0) with the same line. What was read is used."""
     view = tmp_path / "view.mcap"
+    frames = tmp_path / "frames"  # camera grab wants a new folder each time
     lidar = f"127.0.0.1:{free_udp_port()}"  # play sends to loopback only, 20x its pace
     cases = [
         ["replay", str(cut), "--out", str(tmp_path / "run"), "--force"],
@@ -183,9 +186,12 @@ def test_every_command_that_reads_a_cut_recording_says_so_exit_3(cut, tmp_path, 
         ["nmea", "info", str(cut)],
         ["fuse", str(cut), "--scan", "2", "--out", str(tmp_path / "fused.png")],
         ["play", str(cut), "--lidar", lidar, "--telemetry-port", "0", "--speed", "20"],
+        ["camera", "info", str(cut)],
+        ["camera", "grab", str(cut), "--out", str(frames)],
     ]
     for argv in cases:
         for allow, status in (([], EXIT_DATA_LOSS), (["--allow-damaged"], 0)):
+            shutil.rmtree(frames, ignore_errors=True)
             capsys.readouterr()
             assert main([*argv, *allow]) == status, (argv, allow)
             err = capsys.readouterr().err
@@ -193,6 +199,12 @@ def test_every_command_that_reads_a_cut_recording_says_so_exit_3(cut, tmp_path, 
             assert line.startswith(f"treetraits: warning: {cut}: DATA LOSS: the file is cut short")
             assert line.endswith("(exit 3; --allow-damaged accepts it)"), line
     assert view.stat().st_size > 0 and (tmp_path / "pcd" / "scans.csv").is_file()
+    assert list(frames.glob("*.jpg")) and (frames / "timestamps.csv").is_file()
+    # `camera info`'s facts say it too, as `lidar info`'s do.
+    capsys.readouterr()
+    assert main(["camera", "info", str(cut), "--json", "--allow-damaged"]) == 0
+    facts = json.loads(capsys.readouterr().out)
+    assert facts["data_loss"] is True and facts["measured"]["frames"] > 0
 
 
 def test_inspect_reports_damage_before_its_scan_and_past_the_cut(cut, tmp_path, capsys):

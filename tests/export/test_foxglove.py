@@ -8,9 +8,11 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 from typing import NamedTuple
 
 import numpy as np
@@ -26,7 +28,7 @@ from treetraits.drivers.calibration import Calibration, load_calibration
 from treetraits.drivers.gnss.epochs import EpochAssembler
 from treetraits.drivers.gnss.sentences import decode
 from treetraits.drivers.gnss.stream import SentenceSplitter
-from treetraits.export.foxglove import POINT_STEP_M, point_cloud
+from treetraits.export.foxglove import POINT_STEP_M, point_cloud, scene_update
 from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.run import SurveySettings
 
@@ -229,6 +231,50 @@ def test_the_trees_are_the_replays_cylinders_coloured_by_ndvi(survey):
                 assert c.color.g > c.color.r
         else:
             assert (c.color.r, c.color.g, c.color.b) == (0.5, 0.5, 0.5)
+
+
+def test_the_trees_say_which_traits_are_lower_bounds(survey):
+    """The flags of trees.csv, on each tree: as metadata (trees.csv's cells) and in its
+    label, `>` before a lower bound as `replay`'s table prints it. The twin's trees
+    differ: one crown's top measured, the others' heights lower bounds, every width seen
+    from one side (a straight pass)."""
+    _, run, _, view, _ = survey
+    (update,) = [m for _, m in read_view(view)["/trees"]]
+    with open(run / "trees.csv", newline="") as f:
+        rows = {r["tree_id"]: r for r in csv.DictReader(f) if r["tree_id"]}
+    assert {r["height_top_seen"] for r in rows.values()} == {"true", "false"}
+    assert {r["width_sides_seen"] for r in rows.values()} == {"1"}
+    for e in update.entities:
+        tree_id = e.id.removeprefix("tree-")
+        row, meta, (label,) = rows[tree_id], {kv.key: kv.value for kv in e.metadata}, e.texts
+        assert meta["height_top_seen"] == row["height_top_seen"]
+        assert meta["width_sides_seen"] == row["width_sides_seen"]
+        shown = re.fullmatch(r"(\S+)\nw (>?)(\d+\.\d\d) m  h (>?)(\d+\.\d\d) m", label.text)
+        assert shown, label.text
+        assert shown[1] == tree_id
+        assert (shown[2], shown[4]) == (">", ">" if row["height_top_seen"] == "false" else "")
+        # 2 decimals of what trees.csv has to 3: the same value, each rounded once.
+        assert float(shown[3]) == pytest.approx(float(row["width_m"]), abs=0.0051)
+        assert float(shown[5]) == pytest.approx(float(row["height_m"]), abs=0.0051)
+
+
+def test_a_width_seen_from_both_sides_and_unjudged_flags_are_unmarked():
+    """What the twin's straight pass cannot give: a width with both sides in view (a
+    serpentine drive), and a tree without the flags (not judged): no `>`, and empty
+    metadata where trees.csv leaves its cells empty."""
+    traits = dict(x=0.0, y=0.0, z=1.0, width_m=2.5, height_m=3.1, ndvi=None, observations=9)
+    both = SimpleNamespace(tree_id=1, height_top_seen=True, width_sides_seen=2, **traits)
+    unjudged = SimpleNamespace(tree_id=2, **traits)
+    update = scene_update([both, unjudged], np.eye(4), 0)
+    labels = [e.texts[0].text for e in update.entities]
+    assert labels == ["1\nw 2.50 m  h 3.10 m", "2\nw 2.50 m  h 3.10 m"]
+    flags = [
+        {kv.key: kv.value for kv in e.metadata if kv.key.endswith("_seen")} for e in update.entities
+    ]
+    assert flags == [
+        {"height_top_seen": "true", "width_sides_seen": "2"},
+        {"height_top_seen": "", "width_sides_seen": ""},
+    ]
 
 
 def test_a_run_directory_exports_its_own_run(survey, tmp_path):

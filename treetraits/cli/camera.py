@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from treetraits.damage import add_allow_damaged, report_damage, source_integrity
 from treetraits.errors import ConfigError, ParseError
 
 _SOURCE_HELP = (
@@ -49,6 +50,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--decode-all", action="store_true", help="decode every frame to count corrupt ones"
     )
     info.add_argument("--json", action="store_true", help="print one JSON object")
+    add_allow_damaged(info, "prints the facts")
     _add_settings_options(info)
     info.set_defaults(run=run_info)
 
@@ -73,6 +75,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     grab.add_argument(
         "--every", type=int, default=1, metavar="K", help="save every K-th frame (default 1)"
     )
+    add_allow_damaged(grab, "writes the frames")
     _add_settings_options(grab)
     grab.set_defaults(run=run_grab)
 
@@ -144,14 +147,29 @@ def _open(args: argparse.Namespace):
     )
 
 
+def _damage(source) -> dict | None:
+    """What of a replayed input could not be read, as far as it was read
+    (treetraits/damage.py); None for a live camera, which is no recording."""
+    return None if source.is_live else source_integrity(source)
+
+
 def run_info(args: argparse.Namespace) -> int:
     source = _open(args)
     try:
         facts = _live_facts(source, args) if source.is_live else _replay_facts(source, args)
     finally:
         source.close()
+    status = 0
+    if (damage := _damage(source)) is not None:
+        # As `lidar info`: the recording's lost time spans, beside the counters.
+        facts.update(
+            damaged_chunks=damage["damaged_chunks"],
+            lost_spans=damage["lost"],
+            data_loss=damage["data_loss"],
+        )
+        status = report_damage(args.source, damage, args.allow_damaged, "the facts are of the rest")
     print(json.dumps(facts, indent=1) if args.json else _format_facts(facts))
-    return 0
+    return status
 
 
 def _measure(frames) -> dict:
@@ -311,4 +329,6 @@ def run_grab(args: argparse.Namespace) -> int:
     print(f"wrote {written} frames to {args.out} (timestamps.csv); counters: {counters}")
     if source.is_live and written == 0:
         print("no frames arrived: see `treetraits camera info` for the device", file=sys.stderr)
-    return 0
+    if (damage := _damage(source)) is None:
+        return 0
+    return report_damage(args.source, damage, args.allow_damaged, "the frames are of the rest")

@@ -46,6 +46,7 @@ from treetraits.files import check_output_file, write_atomically
 from treetraits.pipeline.classify import TREE
 from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.localization.utm import wrap_angle
+from treetraits.pipeline.trees import COUNT, FLAG, height_bounded, marked, width_bounded
 
 if TYPE_CHECKING:
     from treetraits.service.survey import ScanOutcome, SurveyProcessor
@@ -386,22 +387,41 @@ def ndvi_jpeg(frame: Frame, calibration: Calibration, quality: int = 85) -> byte
     return data.tobytes() if ok else None
 
 
+def trait_flags(tree: Any) -> tuple[bool | None, int | None]:
+    """`height_top_seen` and `width_sides_seen` of a mapped tree, read as trees.csv reads
+    them (`pipeline.georef`): None where the tree has none (not judged)."""
+    return getattr(tree, "height_top_seen", None), getattr(tree, "width_sides_seen", None)
+
+
+def tree_label(tree: Any) -> str:
+    """The text above a tree: its id, then width and height as `replay`'s table prints
+    them (`pipeline.trees.marked`: `>` before a lower bound), so that a viewer sees which
+    traits were measured without opening the metadata."""
+    top_seen, sides_seen = trait_flags(tree)
+    width = marked(tree.width_m, width_bounded(sides_seen))
+    height = marked(tree.height_m, height_bounded(top_seen))
+    return f"{tree.tree_id}\nw {width} m  h {height} m"
+
+
 def scene_update(trees: list, map_from_world: np.ndarray, t: int) -> Any:
     """The trees as upright cylinders in `map`: diameter the width, length the height,
-    standing on z = 0 (base_footprint's ground), coloured by NDVI; id and traits as
-    metadata, the id as a label above."""
+    standing on z = 0 (base_footprint's ground), coloured by NDVI; id, traits and how
+    they were measured as metadata (the flags as trees.csv writes them), a label above."""
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
     update = SceneUpdate()
     for tree in trees:
         entity = update.entities.add(id=f"tree-{tree.tree_id}", frame_id=MAP_FRAME)
         ns_timestamp(entity.timestamp, t)
+        top_seen, sides_seen = trait_flags(tree)
         for key, value in (
             ("tree_id", tree.tree_id),
             ("width_m", f"{tree.width_m:.3f}"),
             ("height_m", f"{tree.height_m:.3f}"),
             ("ndvi", "" if tree.ndvi is None else f"{tree.ndvi:.3f}"),
             ("observations", tree.observations),
+            ("height_top_seen", FLAG.csv(top_seen)),
+            ("width_sides_seen", COUNT.csv(sides_seen)),
         ):
             entity.metadata.add(key=key, value=str(value))
         cylinder = entity.cylinders.add(bottom_scale=1.0, top_scale=1.0)
@@ -414,7 +434,7 @@ def scene_update(trees: list, map_from_world: np.ndarray, t: int) -> Any:
         c = cylinder.color
         c.r, c.g, c.b, c.a = ndvi_rgba(tree.ndvi)
         text = entity.texts.add(
-            billboard=True, font_size=14, scale_invariant=True, text=str(tree.tree_id)
+            billboard=True, font_size=14, scale_invariant=True, text=tree_label(tree)
         )
         text.pose.position.x = cylinder.pose.position.x
         text.pose.position.y = cylinder.pose.position.y
