@@ -1,5 +1,5 @@
 """End to end: the demo survey replayed through the whole pipeline in one process on one
-core, and the command line's start.
+core (and on two with the detection worker), and the command line's start.
 
 The recording is `make demo`'s (`treetraits sim --grid 5x5 --path straight --seed 0`: the
 paper's 2x3 grid driven straight at 0.5 m/s), simulated once by the command line into a
@@ -23,8 +23,12 @@ times, median; with the bytecode cache (`PYTHONPYCACHEPREFIX` in the cache direc
 written by a first start: what an installed package or any normal Python run has) and,
 for reference, without it (`PYTHONDONTWRITEBYTECODE`: every module compiled at each start).
 
-Last line, exactly: `replay_realtime=X startup_s=S`, X = the drive's seconds / the median
-replay's wall seconds (warm), S = the median start with the bytecode cache. The warm
+Two cores: each round also replays with the detection worker (`[pipeline] workers = 2`)
+on this CPU and the next one allowed (n/a where only one is).
+
+Last line, exactly: `replay_realtime=X replay_realtime_2cores=Y startup_s=S`, X = the
+drive's seconds / the median replay's wall seconds (warm, one core), Y the same on two
+cores with the worker, S = the median start with the bytecode cache. The warm
 replays' CPU time (`time.process_time`) is printed beside the wall time: on a machine
 shared with other jobs the wall time includes their turns on the CPU, the CPU time much
 less so, which makes it the figure to compare across runs there.
@@ -69,13 +73,20 @@ def demo_recording(cache: Path) -> Path:
     return path
 
 
-def replay_once(recording: Path) -> tuple[float, float, dict]:
-    """Wall seconds and CPU seconds of one replay, and its summary."""
+def replay_once(recording: Path, workers: int = 1) -> tuple[float, float, dict]:
+    """Wall seconds and CPU seconds of one replay (`[pipeline] workers`), and its summary."""
+    import dataclasses
+
+    from treetraits.service.config import ServiceConfig
     from treetraits.service.replay import ReplayOptions, run_replay
 
+    config = ServiceConfig()
+    config = dataclasses.replace(
+        config, pipeline=dataclasses.replace(config.pipeline, workers=workers)
+    )
     with tempfile.TemporaryDirectory(prefix="bench-replay-") as out:
         start, cpu = time.perf_counter(), time.process_time()
-        report = run_replay(recording, Path(out), ReplayOptions())
+        report = run_replay(recording, Path(out), ReplayOptions(config))
         return time.perf_counter() - start, time.process_time() - cpu, report.summary
 
 
@@ -141,7 +152,8 @@ def main() -> None:
     parser.add_argument("--cpu", type=int, help="the CPU to pin to (default: the first allowed)")
     args = parser.parse_args()
 
-    cpu = args.cpu if args.cpu is not None else min(os.sched_getaffinity(0))
+    allowed = os.sched_getaffinity(0)
+    cpu = args.cpu if args.cpu is not None else min(allowed)
     os.sched_setaffinity(0, {cpu})  # children (the starts) inherit it
     recording = demo_recording(args.cache)
 
@@ -155,7 +167,11 @@ def main() -> None:
     start_uncached = statistics.median(startup_times(args.starts, uncached))
 
     cold, _, summary = replay_once(recording)  # pays the imports
-    replays, cpus, inputs = [], [], []
+    # Two cores: this CPU and the next allowed one, for the replays with the detection
+    # worker (threads made after the change inherit it); none where one is allowed.
+    others = sorted(set(allowed) - {cpu})
+    pair = {cpu, others[0]} if others else None
+    replays, cpus, inputs, pairs = [], [], [], []
     for _ in range(args.rounds):
         seconds, cpu_s, again = replay_once(recording)
         assert again["trees"] == summary["trees"] and again["scans"] == summary["scans"]
@@ -163,6 +179,12 @@ def main() -> None:
         cpus.append(cpu_s)
         seconds, drive_s = input_once(recording)
         inputs.append(seconds)
+        if pair is not None:
+            os.sched_setaffinity(0, pair)
+            seconds, _, again = replay_once(recording, workers=2)
+            os.sched_setaffinity(0, {cpu})
+            assert again["trees"] == summary["trees"] and again["scans"] == summary["scans"]
+            pairs.append(seconds)
     replay_s, input_s = statistics.median(replays), statistics.median(inputs)
     cpu_s = statistics.median(cpus)
     decode = decode_ms(recording)
@@ -183,6 +205,14 @@ def main() -> None:
         f"time  (the wall time less what the machine's other jobs took; "
         f"load {os.getloadavg()[0]:.1f})"
     )
+    two_cores = "n/a"
+    if pairs:
+        pair_s = statistics.median(pairs)
+        two_cores = f"{drive_s / pair_s:.1f}"
+        print(
+            f"  replay, warm, 2 cores (workers 2) {pair_s:7.2f} s  {two_cores:>6}x real "
+            f"time  (CPUs {sorted(pair)}; runs: {', '.join(f'{s:.2f}' for s in pairs)})"
+        )
     print(
         f"  input alone (read + batch scans)  {input_s:7.2f} s  {drive_s / input_s:6.1f}x real "
         f"time  ({input_s / replay_s:.0%} of the replay)"
@@ -193,7 +223,10 @@ def main() -> None:
     )
     print(f"  `treetraits --help`, bytecode cached  {start_cached:.3f} s ({args.starts} starts)")
     print(f"  `treetraits --help`, no bytecode      {start_uncached:.3f} s ({args.starts} starts)")
-    print(f"replay_realtime={drive_s / replay_s:.1f} startup_s={start_cached:.3f}")
+    print(
+        f"replay_realtime={drive_s / replay_s:.1f} replay_realtime_2cores={two_cores} "
+        f"startup_s={start_cached:.3f}"
+    )
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -24,7 +25,7 @@ from treetraits.pipeline.localization.attitude import rotation_zyx
 from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
-from treetraits.pipeline.tracking import Motion, Tracker, motion_transform
+from treetraits.pipeline.tracking import Motion, Track, Tracker, motion_transform
 from treetraits.pipeline.traits import PaperTraits, RobustTraits, new_traits
 
 LIDAR_FRAME = "lidar"
@@ -223,6 +224,7 @@ class TreeMapper:
         self.T_base_lidar = np.asarray(self.calibration.T_base_lidar, dtype=float)
         self.T_lidar_base = np.linalg.inv(self.T_base_lidar)
         self.tracker = Tracker(self.config.tracking)
+        self.tracker.apart = self._known_apart
         self.frame: str | None = None  # fixed by the first scan
         self._trees: dict[int, _Tree] = {}
         # Finalised trees: their record as it was, and the traits frame it was made in
@@ -255,17 +257,36 @@ class TreeMapper:
         """Detect, associate and measure the trees of one scan. `pose`: base_footprint in
         a world frame at the scan's middle; all scans of a run must use the same frame
         (or none). `motion`: used only without poses, for the paper's B v_x prediction."""
+        return self.map_detected(self.detect_scan(scan, frame), pose, motion=motion)
+
+    def detect_scan(self, scan: Scan, frame: Frame | None = None) -> DetectedScan:
+        """The half of `process` that needs no track: the scan's clusters with their
+        measurements and cues (`detect`), NDVI from `frame`. It reads the mapper's
+        settings and calibration only, so it may run on another thread while this one
+        maps the scan before (`service.survey`'s detection worker)."""
         stage_ms: dict[str, float] | None = {} if self.timing else None
-        t = scan_mid_time(scan)
-        map_from_base = self._map_from_base(pose, motion, t)
         # Dual returns: each echo once (a single-return scan has no duplicates to drop).
         points = scan.distinct if scan.points["duplicate"].any() else scan.points
-
         ndvi_reason, ndvi_of = self._ndvi(scan, points, frame)
         detection = detect(points, ndvi_of, self.T_base_lidar, self.config.detection, stage_ms)
         if ndvi_of is not None:
             ndvi_reason = ndvi_of.reason
-        return self._map(detection, t, map_from_base, pose, motion, ndvi_reason, stage_ms)
+        return DetectedScan(detection, scan_mid_time(scan), ndvi_reason, stage_ms)
+
+    def map_detected(
+        self, detected: DetectedScan, pose: Pose | None = None, *, motion: Motion | None = None
+    ) -> ScanResult:
+        """The half of `process` that tracks and measures: scans mapped in their order."""
+        map_from_base = self._map_from_base(pose, motion, detected.t)
+        return self._map(
+            detected.detection,
+            detected.t,
+            map_from_base,
+            pose,
+            motion,
+            detected.ndvi_reason,
+            detected.stage_ms,
+        )
 
     def process_detection(
         self, detection: Detection, t: int, pose: Pose, ndvi: str = "no_frame"
@@ -606,8 +627,9 @@ class TreeMapper:
         return np.array([lidar[0], lidar[1], lidar[2], rise])
 
     def _merge_outlines(self, decisions, view_ids: set[int]) -> list[tuple[int, int]]:
-        """Trees whose accumulated outlines share a centre (closer than the tracker's
-        merge_distance_m) are one tree seen as two: a crown wider than the association
+        """Trees whose places (`_place`: the trunk where it is known, else the accumulated
+        outline's centre) are closer than the tracker's merge_distance_m are one tree
+        seen as two: a crown wider than the association
         gate, seen from both lanes, has its returns' centroids (the Kalman states) a crown
         apart on either side, while each side's outline is centred on the trunk. The older
         tree keeps its id, as in the tracker's merge. A tree with no outline yet (no cell
@@ -625,8 +647,8 @@ class TreeMapper:
         centres = {}
         for tree_id, tree in self._trees.items():
             if (tree_id in view_ids or tree_id in touched) and tree_id in tracks:
-                if (centre := tree.traits.centre()) is not None:
-                    centres[tree_id] = centre
+                if (place := self._place(tracks[tree_id])) is not None:
+                    centres[tree_id] = place
                 elif self._kind(tree) not in UNCLAIMING:
                     centres[tree_id] = rotation @ tracks[tree_id].state[:3] + shift
         merged = []
@@ -651,11 +673,36 @@ class TreeMapper:
             self.tracker.fold(keep, drop)
             self._absorb(keep, drop)
             centres.pop(drop)
-            if (centre := self._trees[keep].traits.centre()) is not None:
-                centres[keep] = centre
+            if (place := self._place(tracks[keep])) is not None:
+                centres[keep] = place
             placed = None  # the centres changed
             merged.append((keep, drop))
         return merged
+
+    def _known_apart(self, keep: Track, drop: Track) -> bool:
+        """Two tracks are two trees when where each stands (its trunk, else its crown
+        outline's centre: what `_record` reports) is known for both and the two lie
+        `merge_distance_m` apart or more. A track's state follows the returns' centroid,
+        which moves with the part of a crown in view: along a hedgerow, whose touching
+        crowns join in the scans before their trunks cut them, a tree's state drifted
+        1.3 m towards the next, 2.75 m away, and the tracker's merge took that tree."""
+        places = [self._place(track) for track in (keep, drop)]
+        if places[0] is None or places[1] is None:
+            return False
+        gap = places[0] - places[1]
+        return math.hypot(gap[0], gap[1]) >= self.config.tracking.merge_distance_m
+
+    def _place(self, track: Track) -> np.ndarray | None:
+        """Where the track's tree stands in the traits frame (`_record`'s rule), or None
+        while neither its trunk nor its outline is known."""
+        tree = self._trees.get(track.tree_id)
+        if tree is None:
+            return None
+        centre = tree.traits.centre()
+        trunk = trunk_position(
+            tree.trunks, self.config.traits, track.observations, centre, tree.traits.width
+        )
+        return centre if trunk is None else trunk
 
     def _claiming(self) -> set[int]:
         """The tracks that take their side in the Voronoi cut: seen in
@@ -946,6 +993,15 @@ def compile_kernels() -> None:
     own_d2, _ = _own_distances(xy, 0.0, 0.0)
     _nearer(xy, own_d2, np.array([[1.0, 1.0]]))
     _cell_means(xy, 0.3, 8)
+
+
+class DetectedScan(NamedTuple):
+    """One scan detected (`TreeMapper.detect_scan`), waiting to be mapped."""
+
+    detection: Detection
+    t: int  # the scan's middle (host clock, ns)
+    ndvi_reason: str
+    stage_ms: dict[str, float] | None
 
 
 class _NdviOf:

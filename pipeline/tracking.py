@@ -20,6 +20,7 @@ How each vague point is read is written out in docs/pipeline.md.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -200,6 +201,9 @@ class Tracker:
         self.tracks: list[Track] = []
         self._next_id = 1
         self._scan = -1  # index of the current scan in the run
+        # Set by the mapper: whether two tracks are known to be two trees (where each
+        # stands is known, and far apart), which no drift of their states may merge.
+        self.apart: Callable[[Track, Track], bool] | None = None
 
     def positions(self) -> np.ndarray:
         return np.array([t.state[:3] for t in self.tracks]).reshape(-1, 3)
@@ -340,9 +344,9 @@ class Tracker:
 
     def _merge(self, in_view: np.ndarray) -> list[tuple[int, int]]:
         """Trees in view closer than merge_distance_m (x-y) are one, unless one stands (a
-        post, a person) and the other does not: the older (lower id) keeps its id; the
-        two estimates are fused by their covariances and the tree keeps
-        the union of their scans."""
+        post, a person) and the other does not, or they are known `apart`: the older
+        (lower id) keeps its id; the two estimates are fused by their covariances and the
+        tree keeps the union of their scans."""
         limit = self.config.merge_distance_m
         if limit <= 0 or len(self.tracks) < 2:
             return []
@@ -363,6 +367,8 @@ class Tracker:
                 continue  # a person beside a crown is not a piece of it
             if float(np.hypot(*(keep.state[:2] - drop.state[:2]))) >= limit:
                 continue  # `keep` took another tree's state above and moved away
+            if self.apart is not None and self.apart(keep, drop):
+                continue  # two trees whose states drifted together
             _fold(keep, drop)
             merged.append((keep.tree_id, drop.tree_id))
             gone.add(b)

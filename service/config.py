@@ -193,6 +193,14 @@ class PipelineConfig:
     field_map: str = field(
         default="", metadata=_key('GeoJSON or CSV field map; "" = none', path=True)
     )
+    workers: int = field(
+        default=1,
+        metadata=_key(
+            "threads for the per-scan work: 2 detects each scan beside the tracking of "
+            "the one before (same outputs); 1 does both in turn",
+            check=_between(1, 2),
+        ),
+    )
 
 
 @dataclass(frozen=True)

@@ -67,6 +67,7 @@ from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.localization.serial_clock import SerialClock
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
+from treetraits.service.detection_worker import DetectionWorker
 
 if TYPE_CHECKING:
     from treetraits.service.config import ServiceConfig
@@ -130,8 +131,15 @@ class SurveyProcessor:
         calibration: Calibration,
         localization: LocalizationConfig | None = None,
         lidar_model: str = "auto",
+        workers: int = 1,
     ):
         self.mapper = mapper
+        # `workers` 2: each scan detected on a second thread while this one maps the scan
+        # before (`service.detection_worker`); a mapper without `detect_scan` (RPH) maps
+        # each scan whole, as with 1.
+        self._worker: DetectionWorker[tuple[Scan, Pose | None, Frame | None]] | None = None
+        if workers > 1 and hasattr(mapper, "detect_scan"):
+            self._worker = DetectionWorker(mapper.detect_scan)
         self.calibration = calibration
         self.localizer = Localizer(localization, calibration.wheels, calibration.T_base_gnss)
         # Roll and pitch from the Jackal MCU's IMU (its frame taken as base_link).
@@ -235,7 +243,11 @@ class SurveyProcessor:
         self._release_fixes(end_of_input=True)
         if (scan := self._batcher.flush()) is not None:
             self._add_scan(scan)
-        return self._ready(end_of_input=True)
+        out = self._ready(end_of_input=True)
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
+        return out
 
     def facts(self, *, live: bool) -> dict[str, Any]:
         """What the processing came to, for the run's facts (the store's `run` table, and
@@ -324,18 +336,20 @@ class SurveyProcessor:
             return self.anchor[1]
         return self.localizer.utm_from_odom(t)
 
-    def _reanchor(self) -> None:
+    def _reanchor(self) -> list[ScanOutcome]:
         """A run mapping in `odom` (no fix when it started) moves its whole map to `utm`
         once the localiser has a datum and knows its heading: trees already mapped move
-        with it, and later scans (the robot back along the same trees) land on them."""
+        with it, and later scans (the robot back along the same trees) land on them.
+        Returns the scans mapped first: those the detection worker held, posed in odom."""
         if self.world_frame != "odom" or self.localizer.first_utm_time is None:
-            return
+            return []
         now = self.localizer.pose()
         if now is None or now.frame != "utm" or not self._heading_known(now):
-            return
+            return []
         transform = self.localizer.utm_from_odom()
         if transform is None:
-            return
+            return []
+        mapped = self._map_detected(wait=True)
         new_from_old = np.eye(4)
         new_from_old[:2, :2] = transform[:2, :2]
         new_from_old[:2, 3] = transform[:2, 2]
@@ -344,6 +358,7 @@ class SurveyProcessor:
         self.anchor = (now.t, transform)
         self.world_frame = "utm"
         self.stats.reanchored_at = now.t
+        return mapped
 
     def _choose_frame(self, end_of_input: bool) -> bool:
         if self.world_frame is None:
@@ -455,10 +470,10 @@ class SurveyProcessor:
         return self._frames[-1].t_capture >= middle
 
     def _ready(self, end_of_input: bool) -> list[ScanOutcome]:
-        out = []
+        out: list[ScanOutcome] = []
         if not self._choose_frame(end_of_input):
             return out
-        self._reanchor()
+        out.extend(self._reanchor())
         while self._pending and (end_of_input or self._settled(self._pending[0])):
             scan = self._pending.popleft()
             if self.behind is not None and self.behind(self._latest):
@@ -479,7 +494,24 @@ class SurveyProcessor:
             frame = min(self._frames, key=lambda f: abs(f.t_capture - middle), default=None)
             if pose is not None:
                 scan = self._deskewed(scan, middle)
-            result = self.mapper.process(scan, frame, pose)
+            if self._worker is None:
+                result = self.mapper.process(scan, frame, pose)
+                self.stats.scans += 1
+                out.append(ScanOutcome(scan, pose, frame, result))
+                continue
+            if self._worker.full:  # the oldest mapped first: memory stays bounded
+                out.extend(self._map_detected(at_least=1))
+            self._worker.submit(scan, frame, (scan, pose, frame))
+        out.extend(self._map_detected(wait=end_of_input))
+        return out
+
+    def _map_detected(self, wait: bool = False, at_least: int = 0) -> list[ScanOutcome]:
+        """The worker's detected scans mapped in their order (`DetectionWorker.done`)."""
+        out = []
+        if self._worker is None:
+            return out
+        for detected, (scan, pose, frame) in self._worker.done(wait, at_least):
+            result = self.mapper.map_detected(detected, pose)
             self.stats.scans += 1
             out.append(ScanOutcome(scan, pose, frame, result))
         return out
@@ -515,5 +547,9 @@ def make_mapper(config: ServiceConfig, calibration: Calibration):
 def make_processor(config: ServiceConfig, calibration: Calibration, lidar_model: str = "auto"):
     """The processing core shared by replay and the live service."""
     return SurveyProcessor(
-        make_mapper(config, calibration), calibration, config.localization, lidar_model
+        make_mapper(config, calibration),
+        calibration,
+        config.localization,
+        lidar_model,
+        config.pipeline.workers,
     )

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import math
 import sqlite3
+from pathlib import Path
 
 import pytest
 
@@ -100,11 +101,26 @@ def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
     assert facts["method"] == "paper" and facts["world_frame"] == "utm"
 
 
-def test_same_input_same_outputs(block, tmp_path):
+def two_threads(config: ServiceConfig | None = None) -> ServiceConfig:
+    """`config` with each scan detected on a second thread (`[pipeline] workers = 2`)."""
+    config = config or ServiceConfig()
+    return dataclasses.replace(config, pipeline=dataclasses.replace(config.pipeline, workers=2))
+
+
+def same_files(first: Path, second: Path) -> None:
+    for name in ("trees.csv", "trees.geojson", "rejected.geojson"):
+        assert (first / name).read_bytes() == (second / name).read_bytes(), name
+    query = "SELECT * FROM trees ORDER BY tree_id"
+    stores = [sqlite3.connect(folder / "traits.sqlite") for folder in (first, second)]
+    assert stores[0].execute(query).fetchall() == stores[1].execute(query).fetchall()
+
+
+def test_same_input_same_outputs_on_one_thread_or_two(block, tmp_path):
+    """Replayed twice, the second time with the detection worker: the same bytes."""
     first = run_replay(block.recording, tmp_path / "a", ReplayOptions())
-    second = run_replay(block.recording, tmp_path / "b", ReplayOptions())
-    assert first.trees == second.trees
-    assert (tmp_path / "a" / "trees.csv").read_text() == (tmp_path / "b" / "trees.csv").read_text()
+    second = run_replay(block.recording, tmp_path / "b", ReplayOptions(two_threads()))
+    assert first.trees == second.trees and first.summary["scans"] == second.summary["scans"]
+    same_files(tmp_path / "a", tmp_path / "b")
 
 
 def test_exports_are_held_to_their_share_and_change_no_output(block, tmp_path, monkeypatch):
@@ -131,11 +147,7 @@ def test_exports_are_held_to_their_share_and_change_no_output(block, tmp_path, m
     assert every_count > 100  # an export after nearly every scan
     assert held_count < every_count / 10
     assert held.trees == every.trees and held.missing == every.missing
-    for name in ("trees.csv", "trees.geojson", "rejected.geojson"):
-        assert (tmp_path / "held" / name).read_bytes() == (tmp_path / "every" / name).read_bytes()
-    query = "SELECT * FROM trees ORDER BY tree_id"
-    stores = [sqlite3.connect(tmp_path / n / "traits.sqlite") for n in ("held", "every")]
-    assert stores[0].execute(query).fetchall() == stores[1].execute(query).fetchall()
+    same_files(tmp_path / "held", tmp_path / "every")
 
 
 @pytest.mark.parametrize(("method", "traits"), [("paper", "robust"), ("rph-vlp16", "paper")])
@@ -301,6 +313,9 @@ def test_a_late_first_fix_moves_the_whole_map_to_utm(tmp_path):
     assert max(math.hypot(*o) for o in offsets_from_truth(report, truth)) < 0.5
     db = sqlite3.connect(tmp_path / "out" / "traits.sqlite")
     assert db.execute("SELECT COUNT(*) FROM trees WHERE easting IS NULL").fetchone()[0] == 0
+    # With the detection worker: the scans it held when the map moved are mapped first.
+    run_replay(survey.recording, tmp_path / "two", ReplayOptions(two_threads()))
+    same_files(tmp_path / "out", tmp_path / "two")
 
 
 def test_old_trees_seen_from_both_lanes_are_one_tree_each(tmp_path):

@@ -1,0 +1,61 @@
+"""A scan's detection on a second thread while the caller maps the scans before it
+(`[pipeline] workers = 2`, docs/performance.md).
+
+Detection (crop, mixed returns, terrain, NDVI, voxels, clustering, each cluster's
+measurements) needs no track: `TreeMapper.detect_scan` reads the mapper's settings and
+calibration only. Its compiled kernels release the GIL (`treetraits.jit.kernel`), so
+they run beside the caller's reading, batching, de-skewing and tracking. Scans are
+handed back in the order they came, so the mapper sees them as the sequential path
+would and the outputs are the same bytes.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, Generic, TypeVar
+
+from treetraits.drivers.records import Frame, Scan
+
+Context = TypeVar("Context")
+
+
+class DetectionWorker(Generic[Context]):
+    """Detects scans one at a time on its own thread; `depth` scans at most are waiting
+    (detected or not), each with the caller's `context` (what mapping it needs)."""
+
+    def __init__(self, detect: Callable[[Scan, Frame | None], Any], depth: int = 2):
+        self._detect = detect
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="treetraits-detect")
+        self._waiting: deque[tuple[Future, Context]] = deque()
+        self.depth = depth
+
+    def __len__(self) -> int:
+        return len(self._waiting)
+
+    @property
+    def full(self) -> bool:
+        return len(self._waiting) >= self.depth
+
+    def submit(self, scan: Scan, frame: Frame | None, context: Context) -> None:
+        self._waiting.append((self._pool.submit(self._detect, scan, frame), context))
+
+    def done(self, wait: bool = False, at_least: int = 0) -> Iterator[tuple[Any, Context]]:
+        """The detected scans in the order they came, with their contexts: those done
+        (all of them with `wait`; the first `at_least` waited for). A detection's
+        exception is raised here, in the caller's thread."""
+        taken = 0
+        while self._waiting:
+            future, context = self._waiting[0]
+            if not (wait or taken < at_least or future.done()):
+                return
+            detected = future.result()
+            self._waiting.popleft()
+            taken += 1
+            yield detected, context
+
+    def close(self) -> None:
+        """Stops the thread once the scans waiting are detected (they are dropped)."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._waiting.clear()
