@@ -197,6 +197,18 @@ def test_merge_collapses_one_tree_seen_twice():
     assert tr.tracks[0].observations == 2 and tr.tracks[0].last_seen == 2
 
 
+def test_two_trees_known_apart_are_not_merged():
+    """The same scans as above, with the mapper saying the two tracks are two trees (their
+    trunks or outlines lie apart): no merge, the new track stays; asked about 1 and 3."""
+    tr = tracker()
+    asked = []
+    tr.apart = lambda keep, drop: asked.append((keep.tree_id, drop.tree_id)) or True
+    step(tr, [[5.0, 2.0, 1.0, 300, 0.7], [9.0, 2.0, 1.0, 300, 0.7]], t=1)
+    result = step(tr, [[5.9, 2.0, 1.0, 300, 0.7]], t=2)
+    assert result.merged == [] and result.decisions[0].outcome == "created"
+    assert [t.tree_id for t in tr.tracks] == [1, 2, 3] and asked == [(1, 3)]
+
+
 def test_a_standing_object_beside_a_tree_is_not_merged_into_it():
     """A person 0.9 m from a tree's centre (a cluster judged a post or person: standing)
     starts a track the distance merge leaves apart; a second standing cluster beside the
