@@ -15,6 +15,7 @@ from tests.helpers.captures import VLP16_CAPTURES
 # one waiting for the other's last replay.
 LONGEST_FIRST = (
     "tests/service/test_replay.py",
+    "tests/service/test_replay_hedgerow.py",
     "tests/sim/test_run.py",
     "tests/drivers/rosbag/test_citrusfarm.py",
     "tests/drivers/rosbag/test_convert.py",

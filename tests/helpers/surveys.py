@@ -12,6 +12,7 @@ it was made.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import fcntl
 import hashlib
@@ -100,3 +101,19 @@ def twin_survey(settings: SurveySettings, into: Path | None = None) -> SurveyRes
         link.symlink_to(source)
         linked[field] = link
     return dataclasses.replace(result, **linked)
+
+
+def truth_rows(survey):
+    with open(survey.truth_csv) as f:
+        return {r["tree_id"]: r for r in csv.DictReader(f)}
+
+
+def offsets_from_truth(report, truth) -> list[tuple[float, float]]:
+    """(east, north) of each reported tree from its field-map tree's truth, metres."""
+    return [
+        (
+            t.easting - float(truth[t.field_id]["easting"]),
+            t.northing - float(truth[t.field_id]["northing"]),
+        )
+        for t in report.trees
+    ]

@@ -14,9 +14,8 @@ import pytest
 
 from tests.helpers.contract import CONTRACT_CSV_COLUMNS
 from tests.helpers.paths import FIXTURES
-from tests.helpers.surveys import twin_survey
+from tests.helpers.surveys import offsets_from_truth, truth_rows, twin_survey
 from treetraits.cli import main
-from treetraits.evaluation.cases import CASES
 from treetraits.pipeline.trees import CSV_COLUMNS
 from treetraits.service.config import ServiceConfig, with_method
 from treetraits.service.replay import ReplayOptions, run_replay
@@ -41,22 +40,6 @@ def block():
     """A 2x2 block driven 10 m (200 scans; tests/season/test_batch.py's first drive): for
     the tests that replay a drive twice or with another method, half the paper case's scans."""
     return twin_survey(SurveySettings(columns=2, rows=2, goal=10.0, seed=1))
-
-
-def truth_rows(survey):
-    with open(survey.truth_csv) as f:
-        return {r["tree_id"]: r for r in csv.DictReader(f)}
-
-
-def offsets_from_truth(report, truth) -> list[tuple[float, float]]:
-    """(east, north) of each reported tree from its field-map tree's truth, metres."""
-    return [
-        (
-            t.easting - float(truth[t.field_id]["easting"]),
-            t.northing - float(truth[t.field_id]["northing"]),
-        )
-        for t in report.trees
-    ]
 
 
 def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
@@ -341,38 +324,3 @@ def test_old_trees_seen_from_both_lanes_are_one_tree_each(tmp_path):
     assert all(t.observations <= report.summary["scans"] for t in report.trees)
     # measured: at most 0.04 m
     assert max(math.hypot(*o) for o in offsets_from_truth(report, truth)) < 0.5
-
-
-def test_a_hedgerow_seen_through_from_the_lane_gives_no_crown_fragments(tmp_path):
-    """field-hedgerow at seed 7: 10-14 s into the pass, returns from the far side of
-    T1's crown (seen from the lane, past its trunk) form a cluster of 10-13 returns in 3
-    scans 2 s apart. Too sparse for any cell of its outline to be hit in `min_hits`
-    scans, it had no outline centre, so the outline merge never compared it with T1, and
-    it came out as a 0.71 m "tree" 1.1 m from T1's centre. Now a tree without an outline
-    is where its track is, and this one is folded into T1.
-
-    Each tree is where its trunk is (`mapper.trunk_position`): 0.03-0.06 m measured,
-    where the crown outline's centre was 0.11-0.36 m off (the touching crowns are cut
-    at their trunks, the outline of each is the piece the lane sees). The crowns of the
-    case as it was measured: `scattered` (the case now grows `dense` ones, a hedge the
-    camera alone tells from a wall: docs/evaluation.md)."""
-    (case,) = [c.with_foliage("scattered") for c in CASES if c.name == "field-hedgerow"]
-    survey = twin_survey(case.settings(7))
-    report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
-    truth = truth_rows(survey)
-    assert len(report.trees) == len(truth) == 10
-    assert sorted(t.field_id for t in report.trees) == sorted(truth)  # each once
-    assert max(math.hypot(*offset) for offset in offsets_from_truth(report, truth)) < 0.12
-
-
-def test_each_tree_of_a_dense_hedgerow_stays_apart_from_its_neighbours(tmp_path):
-    """field-hedgerow as the suite grows it (dense crowns, touching), seed 7: before the
-    trees' places kept them apart (`TreeMapper._known_apart`), the tracks of two crowns
-    drifted towards the next ones, 2.75 m away, as the lane's view of the joined crowns
-    moved along the row, and the tracker merged them into those: 8 of 10 trees found."""
-    (case,) = [c for c in CASES if c.name == "field-hedgerow"]
-    survey = twin_survey(case.settings(7))
-    report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
-    truth = truth_rows(survey)
-    assert len(truth) == 10
-    assert sorted(t.field_id for t in report.trees) == sorted(truth)  # each once
