@@ -627,9 +627,10 @@ class TreeMapper:
         return np.array([lidar[0], lidar[1], lidar[2], rise])
 
     def _merge_outlines(self, decisions, view_ids: set[int]) -> list[tuple[int, int]]:
-        """Trees whose places (`_place`: the trunk where it is known, else the accumulated
-        outline's centre) are closer than the tracker's merge_distance_m are one tree
-        seen as two: a crown wider than the association
+        """Trees whose accumulated outlines share a centre (closer than the tracker's
+        merge_distance_m) are one tree seen as two, unless their trunks are known apart
+        (`_known_apart`: a hedgerow's touching crowns pull their outlines' centres
+        together, 1.47 m apart for trunks 2.75 m apart): a crown wider than the association
         gate, seen from both lanes, has its returns' centroids (the Kalman states) a crown
         apart on either side, while each side's outline is centred on the trunk. The older
         tree keeps its id, as in the tracker's merge. A tree with no outline yet (no cell
@@ -647,8 +648,8 @@ class TreeMapper:
         centres = {}
         for tree_id, tree in self._trees.items():
             if (tree_id in view_ids or tree_id in touched) and tree_id in tracks:
-                if (place := self._place(tracks[tree_id])) is not None:
-                    centres[tree_id] = place
+                if (centre := tree.traits.centre()) is not None:
+                    centres[tree_id] = centre
                 elif self._kind(tree) not in UNCLAIMING:
                     centres[tree_id] = rotation @ tracks[tree_id].state[:3] + shift
         merged = []
@@ -665,7 +666,9 @@ class TreeMapper:
             near = [
                 other
                 for other in (ids[i] for i in np.flatnonzero(close))
-                if other != tree_id and tracks[other].standing == tracks[tree_id].standing
+                if other != tree_id
+                and tracks[other].standing == tracks[tree_id].standing
+                and not self._known_apart(tracks[other], tracks[tree_id])
             ]
             if not near:
                 continue
@@ -673,36 +676,39 @@ class TreeMapper:
             self.tracker.fold(keep, drop)
             self._absorb(keep, drop)
             centres.pop(drop)
-            if (place := self._place(tracks[keep])) is not None:
-                centres[keep] = place
+            if (centre := self._trees[keep].traits.centre()) is not None:
+                centres[keep] = centre
             placed = None  # the centres changed
             merged.append((keep, drop))
         return merged
 
     def _known_apart(self, keep: Track, drop: Track) -> bool:
-        """Two tracks are two trees when where each stands (its trunk, else its crown
-        outline's centre: what `_record` reports) is known for both and the two lie
-        `merge_distance_m` apart or more. A track's state follows the returns' centroid,
-        which moves with the part of a crown in view: along a hedgerow, whose touching
-        crowns join in the scans before their trunks cut them, a tree's state drifted
-        1.3 m towards the next, 2.75 m away, and the tracker's merge took that tree."""
-        places = [self._place(track) for track in (keep, drop)]
-        if places[0] is None or places[1] is None:
+        """Two tracks are two trees when each one's trunk is known (`trunk_position`) and
+        the two stand `merge_distance_m` apart or more. A track's state follows the
+        returns' centroid, which moves with the part of a crown in view: along a hedgerow,
+        whose touching crowns join in the scans before their trunks cut them, a tree's
+        state drifted 1.3 m towards the next, 2.75 m away, and the tracker's merge took
+        that tree. Trunks only: a crown fragment's outline centre says where the piece
+        seen lies, not where a tree stands (a clumped hedgerow's fragment 1.7 m off its
+        crown, kept apart by its outline, became a tree)."""
+        trunks = [self._trunk(track) for track in (keep, drop)]
+        if trunks[0] is None or trunks[1] is None:
             return False
-        gap = places[0] - places[1]
+        gap = trunks[0] - trunks[1]
         return math.hypot(gap[0], gap[1]) >= self.config.tracking.merge_distance_m
 
-    def _place(self, track: Track) -> np.ndarray | None:
-        """Where the track's tree stands in the traits frame (`_record`'s rule), or None
-        while neither its trunk nor its outline is known."""
+    def _trunk(self, track: Track) -> np.ndarray | None:
+        """Where the track's tree stands by its trunk (traits frame), or None."""
         tree = self._trees.get(track.tree_id)
         if tree is None:
             return None
-        centre = tree.traits.centre()
-        trunk = trunk_position(
-            tree.trunks, self.config.traits, track.observations, centre, tree.traits.width
+        return trunk_position(
+            tree.trunks,
+            self.config.traits,
+            track.observations,
+            tree.traits.centre(),
+            tree.traits.width,
         )
-        return centre if trunk is None else trunk
 
     def _claiming(self) -> set[int]:
         """The tracks that take their side in the Voronoi cut: seen in
