@@ -199,7 +199,7 @@ def test_merge_collapses_one_tree_seen_twice():
 
 def test_two_trees_known_apart_are_not_merged():
     """The same scans as above, with the mapper saying the two tracks are two trees (their
-    trunks or outlines lie apart): no merge, the new track stays; asked about 1 and 3."""
+    trunks stand apart): no merge, the new track stays; asked about 1 and 3."""
     tr = tracker()
     asked = []
     tr.apart = lambda keep, drop: asked.append((keep.tree_id, drop.tree_id)) or True
