@@ -38,7 +38,7 @@ latency_ms_p50=A latency_ms_p99=B rss_growth=G cpu_vs_replay=R` (no line breaks)
 core: what one core of a slower computer must keep up with.
 
     .venv/bin/python bench/service.py [--seconds 60] [--record] [--recording REC.mcap]
-        [--busy N]
+        [--busy N] [--workers 1|2]
 """
 
 from __future__ import annotations
@@ -296,7 +296,9 @@ def busy_loops(count: int, cpu: int) -> list[subprocess.Popen]:
     ]
 
 
-def live_run(recording: Path, seconds: float, record: bool, work: Path, busy: int = 0) -> LiveRun:
+def live_run(
+    recording: Path, seconds: float, record: bool, work: Path, busy: int = 0, workers: int = 0
+) -> LiveRun:
     work.mkdir(parents=True)
     video = write_camera_video(recording, work / "camera.avi")
     calibration = rec.read_recording(recording).metadata
@@ -314,6 +316,7 @@ def live_run(recording: Path, seconds: float, record: bool, work: Path, busy: in
             "pipeline": {
                 "calibration": str(calibration_path),
                 "field_map": str(field_map) if field_map.exists() else "",
+                **({"workers": workers} if workers else {}),
             },
             "lidar": {
                 "bind": "127.0.0.1",
@@ -545,6 +548,12 @@ def main() -> None:
         "about a third of a core, where a Xavier core 3x slower than this one would need "
         "~135 %% of one for the same load)",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="the service's [pipeline] workers (1 or 2; default: the config's default)",
+    )
     args = parser.parse_args()
     recording = args.recording or survey_for(args.seconds)
     duration = span_s(recording)
@@ -554,9 +563,16 @@ def main() -> None:
         )
     work = Path(tempfile.mkdtemp(prefix="treetraits-bench-service-"))
     try:
-        runs = [("live", live_run(recording, args.seconds, False, work / "live", args.busy))]
+        runs = [
+            (
+                "live",
+                live_run(recording, args.seconds, False, work / "live", args.busy, args.workers),
+            )
+        ]
         if args.record:
-            record_run = live_run(recording, args.seconds, True, work / "record", args.busy)
+            record_run = live_run(
+                recording, args.seconds, True, work / "record", args.busy, args.workers
+            )
             runs.append(("live --record", record_run))
         replay_cpu, replay_wall, scans = replay_cost(recording, work)
         per_s = replay_cpu / duration
