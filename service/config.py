@@ -194,11 +194,12 @@ class PipelineConfig:
         default="", metadata=_key('GeoJSON or CSV field map; "" = none', path=True)
     )
     workers: int = field(
-        default=1,
+        default=0,
         metadata=_key(
             "threads for the per-scan work: 2 detects each scan beside the tracking of "
-            "the one before (same outputs); 1 does both in turn",
-            check=_between(1, 2),
+            "the one before (same outputs), 1 does both in turn; 0 = 2 in the live service "
+            "(its loop thread stays light), 1 in replay and the offline tools (no faster there)",
+            check=_between(0, 2),
         ),
     )
 

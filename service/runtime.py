@@ -254,7 +254,7 @@ class Service:
     def _open_run(self, calibration: Calibration, field_map: list) -> None:
         from treetraits.service.survey import make_processor, start_facts
 
-        self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model)
+        self.processor = make_processor(self.cfg, calibration, self.cfg.lidar.model, live=True)
         # Before READY: the first scans would otherwise wait for the imports (seconds:
         # filterpy's pulls in scipy.stats) and longer for a kernel to compile, a backlog
         # past max_backlog_s.

@@ -544,12 +544,12 @@ def make_mapper(config: ServiceConfig, calibration: Calibration):
     return TreeMapper(config.mapper(), calibration)
 
 
-def make_processor(config: ServiceConfig, calibration: Calibration, lidar_model: str = "auto"):
-    """The processing core shared by replay and the live service."""
+def make_processor(
+    config: ServiceConfig, calibration: Calibration, lidar_model: str = "auto", live: bool = False
+):
+    """The processing core shared by replay and the live service (`live`: the service,
+    whose `[pipeline] workers = 0` means the detection worker; see docs/performance.md)."""
+    workers = config.pipeline.workers or (2 if live else 1)
     return SurveyProcessor(
-        make_mapper(config, calibration),
-        calibration,
-        config.localization,
-        lidar_model,
-        config.pipeline.workers,
+        make_mapper(config, calibration), calibration, config.localization, lidar_model, workers
     )
