@@ -442,9 +442,7 @@ class TreeMapper:
     def _record(self, track, tree: _Tree, back: np.ndarray) -> TrackedTree:
         position = track.state[:3]
         centre = tree.traits.centre()
-        trunk = trunk_position(
-            tree.trunks, self.config.traits, track.observations, centre, tree.traits.width
-        )
+        trunk = self._trunk(track, tree)
         if trunk is not None:
             centre = trunk
         if centre is None:  # where the track is, in the traits frame (as the views)
@@ -691,17 +689,19 @@ class TreeMapper:
         that tree. Trunks only: a crown fragment's outline centre says where the piece
         seen lies, not where a tree stands (a clumped hedgerow's fragment 1.7 m off its
         crown, kept apart by its outline, became a tree)."""
-        trunks = [self._trunk(track) for track in (keep, drop)]
-        if trunks[0] is None or trunks[1] is None:
-            return False
+        trunks = []
+        for track in (keep, drop):
+            tree = self._trees.get(track.tree_id)
+            trunk = None if tree is None else self._trunk(track, tree)
+            if trunk is None:
+                return False
+            trunks.append(trunk)
         gap = trunks[0] - trunks[1]
         return math.hypot(gap[0], gap[1]) >= self.config.tracking.merge_distance_m
 
-    def _trunk(self, track: Track) -> np.ndarray | None:
-        """Where the track's tree stands by its trunk (traits frame), or None."""
-        tree = self._trees.get(track.tree_id)
-        if tree is None:
-            return None
+    def _trunk(self, track: Track, tree: _Tree) -> np.ndarray | None:
+        """Where the track's tree stands by its trunk (traits frame; `trunk_position`
+        with its outline as the reach), or None: what `_record` reports when known."""
         return trunk_position(
             tree.trunks,
             self.config.traits,

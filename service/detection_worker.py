@@ -31,9 +31,6 @@ class DetectionWorker(Generic[Context]):
         self._waiting: deque[tuple[Future, Context]] = deque()
         self.depth = depth
 
-    def __len__(self) -> int:
-        return len(self._waiting)
-
     @property
     def full(self) -> bool:
         return len(self._waiting) >= self.depth
