@@ -30,7 +30,9 @@ from treetraits.drivers.records import POINT_DTYPE
 from treetraits.jit import kernel, warm_up
 
 # Two returns of a ring are consecutive firings when their azimuths are at most this
-# many median firing steps apart (the step jitters by a few per cent with the motor).
+# many median firing steps apart: half way between one step and two (a firing with no
+# return). On the real captures (first 20 scans) 95-98 % of a ring's steps are within
+# 1.1x the median, 0.01-1.3 % between 1.1 and 1.5x, 1.2-1.8 % near 2x.
 _CONSECUTIVE_STEPS = 1.5
 
 
