@@ -98,6 +98,9 @@ class Cluster:
     # between its highest return and that ray. None: the crown went on above (or no beam
     # is above: the sensor's top ring hit it).
     beam_above: np.ndarray | None = None
+    # The sensor's top ring hit it (`BeamsAbove.top_cut`): its top was out of view because
+    # it reached above the top beam, not because something nearer hid it (`top_view`).
+    top_cut: bool = False
     # (3,) base frame: the axis of the one trunk seen under its crown in this scan
     # (`cluster_trunks`); None when none or more than one was seen.
     trunk: np.ndarray | None = None
@@ -109,6 +112,16 @@ class Cluster:
     def top_seen(self) -> bool:
         """Its top was in view in this scan (see `beam_above`)."""
         return self.beam_above is not None
+
+    @property
+    def top_view(self) -> str:
+        """Why its top was or was not in view in this scan: "seen"; "cut" (it reached the
+        sensor's top beam: too close or too tall); "hidden" (the beam above hit something
+        nearer than its far side within its bearings: a neighbour's crown, a branch, or
+        the object going on upward)."""
+        if self.top_seen:
+            return "seen"
+        return "cut" if self.top_cut else "hidden"
 
     @property
     def features(self) -> np.ndarray:
@@ -438,6 +451,9 @@ def detect(
         beam = beams.beam_above(source[members], window, config.cluster.tolerance_m)
         return None if beam is None else T_base_lidar[:3, :3] @ beam
 
+    def top_cut(members: np.ndarray) -> bool:
+        return beams.top_cut(source[members])
+
     clusters = _features(
         clusters_kept,
         labels,
@@ -450,6 +466,7 @@ def detect(
         T_base_lidar[:3, 3],
         config.classify,
         beam_above,
+        top_cut,
         trunks,
         points[["azimuth", "intensity", "return_type"]],  # a view: nothing copied
         source,
@@ -705,6 +722,7 @@ def _features(
     lidar_xyz,
     classify: ClassifyConfig,
     beam_above: Callable[[np.ndarray], np.ndarray | None],
+    top_cut: Callable[[np.ndarray], bool],
     trunks: dict[int, np.ndarray],
     firing: np.ndarray,
     source: np.ndarray,
@@ -776,6 +794,7 @@ def _features(
                 cues=cues,
                 evidence=evidence,
                 beam_above=beam_above(members),
+                top_cut=top_cut(members),
                 trunk=trunks.get(int(kept[k])),
             )
         )

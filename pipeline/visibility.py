@@ -78,6 +78,15 @@ class BeamsAbove:
             start, end,
         )  # fmt: skip
 
+    def top_cut(self, members: np.ndarray) -> bool:
+        """Whether the cluster `members` reaches the sensor's top beam: no beam is above
+        it, and it may go on above the top beam's reach (a crown too close for its top
+        to be in view). `top_seen` is then false whatever lies around it."""
+        _, ring = _top_and_ring(
+            self._by_point[2], self._by_point[5], kernel_layout(members, np.int64)
+        )
+        return bool(ring >= self.top_ring)
+
     def beam_above(
         self, members: np.ndarray, window_rad: float, reach_m: float
     ) -> np.ndarray | None:

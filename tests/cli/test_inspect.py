@@ -162,6 +162,7 @@ def test_json_has_every_cue_and_contribution(capsys):
         assert math.isclose(sum(parts), obj["evidence"], abs_tol=0.005)
         assert obj["vegetation"] == (obj["evidence"] > 0)
         assert obj["ndvi"] is None  # no camera: NaN comes out as null
+        assert obj["top"] in ("seen", "cut", "hidden")
 
 
 def test_scan_past_the_end_exits_2_naming_the_count(capsys):
@@ -180,5 +181,16 @@ def test_help_explains_the_columns(capsys):
         main(["inspect", "--help"])
     assert exit_.value.code == 0
     out = capsys.readouterr().out
-    for word in ("extent", "verdict", "evid", "texture", "planar", "inten", "--png", "--time"):
+    for word in (
+        "extent",
+        "top",
+        "hidden",
+        "verdict",
+        "evid",
+        "texture",
+        "planar",
+        "inten",
+        "--png",
+        "--time",
+    ):
         assert word in out

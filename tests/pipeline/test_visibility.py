@@ -69,6 +69,13 @@ def test_no_beam_above_the_top_beam_and_the_seam_of_bearings():
     assert BeamsAbove(points).top_seen(np.arange(1), WINDOW, 0.5)
 
 
+def test_a_cluster_on_the_top_ring_is_cut_others_are_not():
+    scan = returns(*CLUSTER, FAR_OFF, (15, 60.0, 8.0), (13, 61.0, 8.0))
+    beams = BeamsAbove(scan)
+    assert not beams.top_cut(np.array([0, 1]))  # ring 12: a beam above it
+    assert beams.top_cut(np.array([3, 4]))  # the top ring (15) hit it
+
+
 def test_the_beam_above_points_where_the_next_ring_does():
     """The beam above the cluster's top (ring 12, 9 deg, at 30 deg): ring 13's elevation
     as its returns elsewhere in the scan measure it; where ring 13 hit nothing, the step
@@ -126,6 +133,9 @@ def test_a_crown_above_the_top_beam_is_not_seen_a_lower_or_farther_one_is():
     assert not nearest(clusters, close).top_seen
     assert nearest(clusters, far).top_seen
     assert nearest(clusters, young).top_seen
+    # Why, as `inspect` prints it: the close one reached the top beam itself.
+    assert nearest(clusters, close).top_cut
+    assert [nearest(clusters, t).top_view for t in (close, far, young)] == ["cut", "seen", "seen"]
     # Heights agree: the clipped one is well short of its 2.85 m, the seen ones are not.
     close_top = nearest(clusters, close)
     assert close_top.points[:, 2].max() - close_top.ground_z < 2.3
@@ -144,6 +154,9 @@ def test_a_crown_along_a_hedgerow_is_hidden_by_its_neighbours():
     clusters = tree_clusters(*row)
     assert not nearest(clusters, row[2]).top_seen
     assert not nearest(clusters, row[0]).top_seen
+    # The far one is under the top beam's reach: hidden, not cut; the nearest is cut.
+    assert nearest(clusters, row[2]).top_view == "hidden"
+    assert nearest(clusters, row[0]).top_view == "cut"
 
 
 def test_the_printed_table_marks_a_height_that_is_a_lower_bound():

@@ -22,6 +22,10 @@ the robot; '-' = not measured):
   height   its top above the terrain under it (the height rule's value)
   extent   vertical extent: its highest return minus its lowest
   width    its largest horizontal extent
+  top      its top in this scan: seen (the beam above passed over all of it: its height
+           is bracketed), cut (the sensor's top beam hit it: too close or too tall for
+           its top to be in view), hidden (the beam above hit something nearer within
+           its bearings: a neighbour's crown, or the object going on upward)
   verdict  tree, or the first rule it fails: low, tall, floating, thin, slender, wide,
            smooth (its surface speaks against foliage), not_green (the camera's NDVI)
   veg      yes when the cues weighed together speak for vegetation (evidence > 0)
