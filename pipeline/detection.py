@@ -780,6 +780,7 @@ def _features(
             surface[k], ndvi=crown_ndvi, ndvi_share=crown_seen, ndvi_returns=seen_returns
         )
         evidence = weigh(cues, classify)
+        beam = beam_above(members)
         clusters.append(
             Cluster(
                 centroid=centroid,
@@ -793,8 +794,8 @@ def _features(
                 verdict=judge(shape, classify, evidence),
                 cues=cues,
                 evidence=evidence,
-                beam_above=beam_above(members),
-                top_cut=top_cut(members),
+                beam_above=beam,
+                top_cut=beam is None and top_cut(members),  # asked only when not seen
                 trunk=trunks.get(int(kept[k])),
             )
         )

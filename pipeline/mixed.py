@@ -15,7 +15,7 @@ A return is mixed when, along its ring (consecutive firings, none missing):
   `offset_m` of it in range. In foliage consecutive beams fall on leaves decimetres
   apart in depth, so a crown's returns are never taken for mixed ones.
 
-Measured on real returns (first 20 scans of each; docs/pipeline.md): 0.36-0.58 per
+Measured on real returns (first 20 scans of each; docs/pipeline.md): 0.36-0.54 per
 mille of the indoor captures' returns, 2.8 per mille of the orchard capture's (canopy
 edges against the rows behind).
 """

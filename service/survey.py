@@ -495,9 +495,7 @@ class SurveyProcessor:
             if pose is not None:
                 scan = self._deskewed(scan, middle)
             if self._worker is None:
-                result = self.mapper.process(scan, frame, pose)
-                self.stats.scans += 1
-                out.append(ScanOutcome(scan, pose, frame, result))
+                out.append(self._mapped(scan, pose, frame, self.mapper.process(scan, frame, pose)))
                 continue
             if self._worker.full:  # the oldest mapped first: memory stays bounded
                 out.extend(self._map_detected(at_least=1))
@@ -511,10 +509,13 @@ class SurveyProcessor:
         if self._worker is None:
             return out
         for detected, (scan, pose, frame) in self._worker.done(wait, at_least):
-            result = self.mapper.map_detected(detected, pose)
-            self.stats.scans += 1
-            out.append(ScanOutcome(scan, pose, frame, result))
+            out.append(self._mapped(scan, pose, frame, self.mapper.map_detected(detected, pose)))
         return out
+
+    def _mapped(self, scan: Scan, pose: Pose | None, frame: Frame | None, result) -> ScanOutcome:
+        """A scan the mapper has mapped, counted."""
+        self.stats.scans += 1
+        return ScanOutcome(scan, pose, frame, result)
 
 
 def start_facts(config: ServiceConfig, calibration: Calibration, source: str) -> dict[str, Any]:
