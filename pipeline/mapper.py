@@ -162,12 +162,14 @@ class _Tree:
             self.grounds = self.grounds[::2]
 
     def height_measured(self, centre: np.ndarray, height: float, tolerance: float) -> bool:
-        """Both ends of its `height` known within `tolerance` of it (the traits frame):
-        its top, between its highest return (`top_z`) and the lowest of the rays that
-        passed over it, taken at the tree's position `centre` (x-y); and its foot, the
-        ground the height was measured from (`top_z` less the height), no higher above
-        the lowest ground seen under it (10th percentile of `grounds`): a height taken
-        from the top of the weeds under a crown is short by theirs."""
+        """Its `height` known within `tolerance` of it (the traits frame), both ends
+        together: its top lies between its highest return (`top_z`) and the lowest of the
+        rays that passed over it, taken at the tree's position `centre` (x-y); its foot,
+        the ground the height was measured from (`top_z` less the height), lies above the
+        lowest ground seen under it (10th percentile of `grounds`) by what a height taken
+        from the top of the weeds under a crown is short by. The two gaps add up: the
+        height is short by the top's, and by the foot's (each alone within 5 %, a
+        broadleaf crown's height came out 6.6 % short)."""
         if not len(self.tops) or not len(self.grounds) or not height > 0:
             return False
         reach = np.hypot(self.tops[:, 0] - centre[0], self.tops[:, 1] - centre[1])
@@ -175,11 +177,11 @@ class _Tree:
         # A ray below its highest return passed over a piece of the crown, the rest of it
         # hidden in that scan or cut off the cluster: it bounds nothing.
         rays = rays[rays >= self.top_z - _RAY_NOISE_M]
-        margin = tolerance * height
-        if not len(rays) or rays.min() - self.top_z > margin:
+        if not len(rays):
             return False
-        foot = self.top_z - height
-        return bool(foot - np.percentile(self.grounds, 10) <= margin)
+        top_gap = max(0.0, float(rays.min()) - self.top_z)  # a ray within the noise: 0
+        foot_gap = max(0.0, self.top_z - height - float(np.percentile(self.grounds, 10)))
+        return top_gap + foot_gap <= tolerance * height
 
     def add_view(self, view: np.ndarray) -> None:
         """The LiDAR's x, y and heading at a scan that measured the tree, unless it stood

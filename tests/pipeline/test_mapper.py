@@ -21,6 +21,7 @@ from treetraits.pipeline.mapper import (
     SIDES_MARGIN_DEG,
     TreeMapper,
     _Centres,
+    _Tree,
     row_direction,
     sides_seen,
     trunk_position,
@@ -437,3 +438,28 @@ def test_an_object_seen_in_fewer_scans_than_claim_min_scans_claims_nothing():
         assert trees, (claim, scans)
         assert (trees <= mapper._claiming()) == claiming, (claim, scans)
         assert bool(trees & mapper._claiming()) == claiming, (claim, scans)
+
+
+@pytest.mark.parametrize(
+    ("ray_top_m", "foot_m", "measured"),
+    [
+        (2.80, 0.00, True),  # the top bracketed to 3.7 %, the foot on the lowest ground
+        (2.70, 0.10, True),  # 3.7 % at the foot alone
+        (2.80, 0.10, False),  # each end within 5 %, together 7.4 %: short by up to that
+        (2.74, 0.05, True),  # 1.5 % and 1.9 %: 3.3 % together
+        (2.90, 0.00, False),  # the top's gap alone is 7.4 %
+    ],
+)
+def test_a_height_is_measured_when_its_two_ends_together_are_within_5_percent(
+    ray_top_m, foot_m, measured
+):
+    """A 2.7 m tree standing at the origin on ground at z = 0 (the lowest seen under it),
+    its highest return at 2.70 m + foot. One level ray passed over its top at
+    `ray_top_m`: the true top lies between the highest return and that ray. The height
+    measured from the foot is short by the top's gap plus the foot's rise above the
+    ground, and is measured when both together are within 5 % of it."""
+    tree = _Tree(traits=None)
+    tree.top_z = 2.70 + foot_m
+    tree.add_tops(np.array([[6.0, 0.0, ray_top_m + foot_m, 0.0]]))
+    tree.add_grounds(np.zeros(20))
+    assert tree.height_measured(np.zeros(2), 2.70, 0.05) is measured
