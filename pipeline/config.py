@@ -396,12 +396,13 @@ class TraitsConfig:
     # crown's width from the outline's centre (0.5: the crown's edge).
     trunk_reach_share: float = 0.5
     # A height is called measured (`height_top_seen`) when the crown's top is bracketed
-    # within this share of it: below the lowest of the rays that passed over it (the beam
-    # above its highest ring, in each scan that had its top in view, reaching the tree's
-    # position) and above the height measured, that gap and the foot's (above the lowest
-    # ground seen under it) together. 2 deg between a VLP-16's beams is 0.35 m
-    # at 10 m, so one scan brackets no 3 m crown to 5 %; an approach or a drive away,
-    # scan after scan, lowers the rays onto the top. The share a grower asks of a height.
+    # within this share of it: below the second lowest of the rays that passed over it
+    # (the beam above its highest ring, in each scan that had its top in view, where the
+    # tree stands and where its highest return is) and above the height measured, that
+    # gap and the foot's (above the lowest ground seen under it) together. 2 deg
+    # between a VLP-16's beams is 0.35 m at 10 m, so one scan brackets no 3 m crown to
+    # 5 %; an approach or a drive away, scan after scan, lowers the rays onto the top.
+    # The share a grower asks of a height.
     top_tolerance: float = 0.05
 
     def __post_init__(self) -> None:

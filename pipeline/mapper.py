@@ -123,8 +123,9 @@ class _Tree:
     # and the rise per metre of the beam above its top (`height_measured`).
     tops: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
     # The highest of its own returns in any scan (the traits frame's z): its top is
-    # at least that high.
+    # at least that high; and its x-y, where the crown's apex most likely is.
     top_z: float = -math.inf
+    top_xy: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
     # The ground's z under its clusters, one per scan (the traits frame; at most
     # `_MAX_TRUNK_SIGHTINGS`): where its height's foot can be (`height_measured`).
     grounds: np.ndarray = field(default_factory=lambda: np.empty(0))
@@ -161,25 +162,44 @@ class _Tree:
         if len(self.grounds) >= _MAX_TRUNK_SIGHTINGS:  # every other: the spread stays
             self.grounds = self.grounds[::2]
 
+    def raise_top(self, point: np.ndarray) -> None:
+        """A return of its own (x, y, z in the traits frame): its top if the highest yet."""
+        if point[2] > self.top_z:
+            self.top_z, self.top_xy = float(point[2]), np.array(point[:2], dtype=float)
+
     def height_measured(self, centre: np.ndarray, height: float, tolerance: float) -> bool:
         """Its `height` known within `tolerance` of it (the traits frame), both ends
-        together: its top lies between its highest return (`top_z`) and the lowest of the
-        rays that passed over it, taken at the tree's position `centre` (x-y); its foot,
-        the ground the height was measured from (`top_z` less the height), lies above the
-        lowest ground seen under it (10th percentile of `grounds`) by what a height taken
-        from the top of the weeds under a crown is short by. The two gaps add up: the
-        height is short by the top's, and by the foot's (each alone within 5 %, a
-        broadleaf crown's height came out 6.6 % short)."""
+        together: its top lies between its highest return (`top_z`) and the rays that
+        passed over it; its foot, the ground the height was measured from (`top_z` less
+        the height), lies above the lowest ground seen under it (10th percentile of
+        `grounds`) by what a height taken from the top of the weeds under a crown is short
+        by. The two gaps add up: the height is short by the top's, and by the foot's (each
+        alone within 5 %, a broadleaf crown's height came out 6.6 % short).
+
+        The top's bound is one that two scans agree on: the second lowest ray over it. A
+        single scan's beam may have passed through a gap in the foliage at the apex, or
+        over a crown whose apex it could not see (the part behind its highest return), and
+        proves nothing alone: a lobed crown measured from one scan came out 6.5 % short.
+        A ray rises with its distance from the LiDAR, so it bounds the crown by a
+        different height at each place: the apex is where the tree stands (`centre`, x-y)
+        on a regular crown, and off it on a lobed one, where its highest return is
+        (`top_xy`); the top's gap is the larger of the two places'."""
         if not len(self.tops) or not len(self.grounds) or not height > 0:
             return False
-        reach = np.hypot(self.tops[:, 0] - centre[0], self.tops[:, 1] - centre[1])
-        rays = self.tops[:, 2] + reach * self.tops[:, 3]
-        # A ray below its highest return passed over a piece of the crown, the rest of it
-        # hidden in that scan or cut off the cluster: it bounds nothing.
-        rays = rays[rays >= self.top_z - _RAY_NOISE_M]
-        if not len(rays):
+
+        def rays_at(place: np.ndarray) -> np.ndarray:
+            reach = np.hypot(self.tops[:, 0] - place[0], self.tops[:, 1] - place[1])
+            return self.tops[:, 2] + reach * self.tops[:, 3]
+
+        # A ray below its highest return where the tree stands passed over a piece of the
+        # crown, the rest of it hidden in that scan or cut off the cluster: it bounds nothing.
+        valid = rays_at(centre) >= self.top_z - _RAY_NOISE_M
+        if np.count_nonzero(valid) < 2:
             return False
-        top_gap = max(0.0, float(rays.min()) - self.top_z)  # a ray within the noise: 0
+        top_gap = 0.0  # a ray within the noise below the highest return: 0
+        for place in (centre, self.top_xy):
+            second_lowest = np.partition(rays_at(place)[valid], 1)[1]
+            top_gap = max(top_gap, float(second_lowest) - self.top_z)
         foot_gap = max(0.0, self.top_z - height - float(np.percentile(self.grounds, 10)))
         return top_gap + foot_gap <= tolerance * height
 
@@ -600,7 +620,7 @@ class TreeMapper:
         ground_here = float(traits_from_base[2, :3] @ foot + traits_from_base[2, 3])
         if len(points):  # returns of its own were measured from here
             tree.add_view(view)
-            tree.top_z = max(tree.top_z, float(world[:, 2].max()))
+            tree.raise_top(world[int(np.argmax(world[:, 2]))])
             tree.add_grounds(np.array([ground_here]))
         world_points = ground_world = None
         if outline:  # both methods keep the outline in the world frame (its centre)
@@ -760,7 +780,7 @@ class TreeMapper:
         tree.ndvi_sum += gone.ndvi_sum
         tree.ndvi_count += gone.ndvi_count
         tree.add_tops(gone.tops)
-        tree.top_z = max(tree.top_z, gone.top_z)
+        tree.raise_top(np.array([*gone.top_xy, gone.top_z]))
         tree.add_grounds(gone.grounds)
         tree.add_trunks(gone.trunks)
         tree.add_views(gone.views)

@@ -454,12 +454,49 @@ def test_a_height_is_measured_when_its_two_ends_together_are_within_5_percent(
     ray_top_m, foot_m, measured
 ):
     """A 2.7 m tree standing at the origin on ground at z = 0 (the lowest seen under it),
-    its highest return at 2.70 m + foot. One level ray passed over its top at
-    `ray_top_m`: the true top lies between the highest return and that ray. The height
+    its highest return at 2.70 m + foot. Two scans' level rays passed over its top at
+    `ray_top_m`: the true top lies between the highest return and those rays. The height
     measured from the foot is short by the top's gap plus the foot's rise above the
     ground, and is measured when both together are within 5 % of it."""
     tree = _Tree(traits=None)
-    tree.top_z = 2.70 + foot_m
-    tree.add_tops(np.array([[6.0, 0.0, ray_top_m + foot_m, 0.0]]))
+    tree.raise_top(np.array([0.0, 0.0, 2.70 + foot_m]))
+    tree.add_tops(
+        np.array([[6.0, 0.0, ray_top_m + foot_m, 0.0], [6.5, 0.0, ray_top_m + foot_m, 0.0]])
+    )
     tree.add_grounds(np.zeros(20))
     assert tree.height_measured(np.zeros(2), 2.70, 0.05) is measured
+
+
+@pytest.mark.parametrize(
+    ("top_x_m", "measured"),
+    [
+        (0.0, True),  # a regular crown's apex over the trunk: the rays 6 cm above it, 2.2 %
+        (0.6, False),  # a lobe's, 0.6 m beyond: the rays 0.22 m above it there, 8 %
+    ],
+)
+def test_a_tops_bound_is_taken_where_the_tree_stands_and_at_its_highest_return(top_x_m, measured):
+    """A 2.7 m tree at the origin on level ground; two scans 9 m before it, the LiDAR
+    0.44 m up, its beam above the top rising 0.258 m a metre: over the trunk at 2.76 m,
+    over a point 0.6 m beyond at 2.92 m. Its highest return, 2.70 m, at the trunk or on
+    a lobe 0.6 m beyond it: there an apex up to the rays' height there can hide, and its
+    height is not known to 5 %."""
+    tree = _Tree(traits=None)
+    tree.raise_top(np.array([top_x_m, 0.0, 2.70]))
+    rise = (2.76 - 0.44) / 9.0
+    tree.add_tops(np.array([[-9.0, 0.0, 0.44, rise], [-9.0, 0.0, 0.44, rise]]))
+    tree.add_grounds(np.zeros(20))
+    assert tree.height_measured(np.zeros(2), 2.70, 0.05) is measured
+
+
+def test_a_tops_bound_is_one_two_scans_agree_on():
+    """The same tree with rays from two scans: one passing 2 cm over its highest return
+    (through a gap at the apex, say), one 0.3 m over it. The bound is the second, 11 %:
+    not measured; one scan's ray alone proves nothing; a second scan's ray as low as the
+    first makes it measured."""
+    low, high = [6.0, 0.0, 2.72, 0.0], [6.5, 0.0, 3.00, 0.0]
+    for rows, measured in (([low], False), ([low, high], False), ([low, high, low], True)):
+        tree = _Tree(traits=None)
+        tree.raise_top(np.array([0.0, 0.0, 2.70]))
+        tree.add_tops(np.array(rows))
+        tree.add_grounds(np.zeros(20))
+        assert tree.height_measured(np.zeros(2), 2.70, 0.05) is measured, rows
