@@ -202,6 +202,15 @@ class PipelineConfig:
             check=_between(0, 2),
         ),
     )
+    detect_in: str = field(
+        default="auto",
+        metadata=_key(
+            "where workers = 2 detects: thread | process | auto (a thread in the live "
+            "service: no second interpreter to start; a process in replay and the offline "
+            "tools, where a thread waits on the GIL)",
+            check=_one_of(("auto", "thread", "process")),
+        ),
+    )
 
 
 @dataclass(frozen=True)

@@ -1,19 +1,22 @@
-"""A scan's detection on a second thread while the caller maps the scans before it
-(`[pipeline] workers = 2`, docs/performance.md).
+"""A scan's detection beside the mapping of the scans before it (`[pipeline] workers = 2`,
+docs/performance.md): on a second thread, or in a second process.
 
 Detection (crop, mixed returns, terrain, NDVI, voxels, clustering, each cluster's
 measurements) needs no track: `TreeMapper.detect_scan` reads the mapper's settings and
-calibration only. Its compiled kernels release the GIL (`treetraits.jit.kernel`), so
-they run beside the caller's reading, batching, de-skewing and tracking. Scans are
-handed back in the order they came, so the mapper sees them as the sequential path
-would and the outputs are the same bytes.
+calibration only. On a thread its compiled kernels release the GIL
+(`treetraits.jit.kernel`), so they run beside the caller's reading, batching, de-skewing
+and tracking, while its Python and NumPy calls on small arrays wait for the caller's. In
+a process (`detection_process`) nothing waits: the scan and its camera frame go to it
+pickled, and the detected scan comes back. Scans are handed back in the order they came,
+so the mapper sees them as the sequential path would and the outputs are the same bytes.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from multiprocessing import get_context
 from typing import Any, Generic, TypeVar
 
 from treetraits.drivers.records import Frame, Scan
@@ -22,12 +25,20 @@ Context = TypeVar("Context")
 
 
 class DetectionWorker(Generic[Context]):
-    """Detects scans one at a time on its own thread; `depth` scans at most are waiting
-    (detected or not), each with the caller's `context` (what mapping it needs)."""
+    """Detects scans one at a time on its own thread (or `executor`'s one worker);
+    `depth` scans at most are waiting (detected or not), each with the caller's `context`
+    (what mapping it needs)."""
 
-    def __init__(self, detect: Callable[[Scan, Frame | None], Any], depth: int = 2):
+    def __init__(
+        self,
+        detect: Callable[[Scan, Frame | None], Any],
+        depth: int = 2,
+        executor: Executor | None = None,
+    ):
         self._detect = detect
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="treetraits-detect")
+        self._pool = executor or ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="treetraits-detect"
+        )
         self._waiting: deque[tuple[Future, Context]] = deque()
         self.depth = depth
 
@@ -53,6 +64,33 @@ class DetectionWorker(Generic[Context]):
             yield detected, context
 
     def close(self) -> None:
-        """Stops the thread once the scans waiting are detected (they are dropped)."""
+        """Stops the worker once the scans waiting are detected (they are dropped)."""
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._waiting.clear()
+
+
+# The detecting process's own mapper: its settings and calibration, no tracks.
+_detector = None
+
+
+def _start_detector(config, calibration, timing: bool) -> None:
+    global _detector
+    from treetraits.pipeline.mapper import TreeMapper
+
+    _detector = TreeMapper(config, calibration, timing=timing)
+
+
+def _detect_in_process(scan: Scan, frame: Frame | None):
+    return _detector.detect_scan(scan, frame)
+
+
+def detection_process(mapper, depth: int = 2) -> DetectionWorker:
+    """A `DetectionWorker` whose detection runs in a second process (spawned: Open3D's
+    threads and fork do not mix) with a mapper of `mapper`'s settings and calibration."""
+    pool = ProcessPoolExecutor(
+        max_workers=1,
+        mp_context=get_context("spawn"),
+        initializer=_start_detector,
+        initargs=(mapper.config, mapper.calibration, mapper.timing),
+    )
+    return DetectionWorker(_detect_in_process, depth, executor=pool)

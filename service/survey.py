@@ -67,7 +67,7 @@ from treetraits.pipeline.localization.pose import Pose
 from treetraits.pipeline.localization.serial_clock import SerialClock
 from treetraits.pipeline.localization.utm import wrap_angle
 from treetraits.pipeline.projection import scan_mid_time
-from treetraits.service.detection_worker import DetectionWorker
+from treetraits.service.detection_worker import DetectionWorker, detection_process
 
 if TYPE_CHECKING:
     from treetraits.service.config import ServiceConfig
@@ -132,14 +132,18 @@ class SurveyProcessor:
         localization: LocalizationConfig | None = None,
         lidar_model: str = "auto",
         workers: int = 1,
+        detect_in: str = "thread",
     ):
         self.mapper = mapper
-        # `workers` 2: each scan detected on a second thread while this one maps the scan
-        # before (`service.detection_worker`); a mapper without `detect_scan` (RPH) maps
-        # each scan whole, as with 1.
+        # `workers` 2: each scan detected on a second thread, or in a second process
+        # (`detect_in`), while this one maps the scan before (`service.detection_worker`);
+        # a mapper without `detect_scan` (RPH) maps each scan whole, as with 1.
         self._worker: DetectionWorker[tuple[Scan, Pose | None, Frame | None]] | None = None
         if workers > 1 and hasattr(mapper, "detect_scan"):
-            self._worker = DetectionWorker(mapper.detect_scan)
+            if detect_in == "process":
+                self._worker = detection_process(mapper)
+            else:
+                self._worker = DetectionWorker(mapper.detect_scan)
         self.calibration = calibration
         self.localizer = Localizer(localization, calibration.wheels, calibration.T_base_gnss)
         # Roll and pitch from the Jackal MCU's IMU (its frame taken as base_link).
@@ -549,8 +553,13 @@ def make_processor(
     config: ServiceConfig, calibration: Calibration, lidar_model: str = "auto", live: bool = False
 ):
     """The processing core shared by replay and the live service (`live`: the service,
-    whose `[pipeline] workers = 0` means the detection worker; see docs/performance.md)."""
+    whose `[pipeline] workers = 0` means the detection worker, on a thread with
+    `detect_in = "auto"`; offline, a process: see docs/performance.md)."""
     workers = config.pipeline.workers or (2 if live else 1)
+    detect_in = config.pipeline.detect_in
+    if detect_in == "auto":
+        detect_in = "thread" if live else "process"
+    mapper = make_mapper(config, calibration)
     return SurveyProcessor(
-        make_mapper(config, calibration), calibration, config.localization, lidar_model, workers
+        mapper, calibration, config.localization, lidar_model, workers, detect_in
     )

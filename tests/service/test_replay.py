@@ -84,10 +84,12 @@ def test_every_tree_found_once_and_matched(survey, tmp_path, capsys):
     assert facts["method"] == "paper" and facts["world_frame"] == "utm"
 
 
-def two_threads(config: ServiceConfig | None = None) -> ServiceConfig:
-    """`config` with each scan detected on a second thread (`[pipeline] workers = 2`)."""
+def two_cores(detect_in: str, config: ServiceConfig | None = None) -> ServiceConfig:
+    """`config` with each scan detected on a second thread or in a second process
+    (`[pipeline] workers = 2`, `detect_in`)."""
     config = config or ServiceConfig()
-    return dataclasses.replace(config, pipeline=dataclasses.replace(config.pipeline, workers=2))
+    pipeline = dataclasses.replace(config.pipeline, workers=2, detect_in=detect_in)
+    return dataclasses.replace(config, pipeline=pipeline)
 
 
 def same_files(first: Path, second: Path) -> None:
@@ -98,10 +100,12 @@ def same_files(first: Path, second: Path) -> None:
     assert stores[0].execute(query).fetchall() == stores[1].execute(query).fetchall()
 
 
-def test_same_input_same_outputs_on_one_thread_or_two(block, tmp_path):
-    """Replayed twice, the second time with the detection worker: the same bytes."""
+@pytest.mark.parametrize("detect_in", ["thread", "process"])
+def test_same_input_same_outputs_on_one_core_or_two(block, tmp_path, detect_in):
+    """Replayed twice, the second time with the detection worker on a thread or in a
+    process: the same bytes."""
     first = run_replay(block.recording, tmp_path / "a", ReplayOptions())
-    second = run_replay(block.recording, tmp_path / "b", ReplayOptions(two_threads()))
+    second = run_replay(block.recording, tmp_path / "b", ReplayOptions(two_cores(detect_in)))
     assert first.trees == second.trees and first.summary["scans"] == second.summary["scans"]
     same_files(tmp_path / "a", tmp_path / "b")
 
@@ -297,8 +301,9 @@ def test_a_late_first_fix_moves_the_whole_map_to_utm(tmp_path):
     db = sqlite3.connect(tmp_path / "out" / "traits.sqlite")
     assert db.execute("SELECT COUNT(*) FROM trees WHERE easting IS NULL").fetchone()[0] == 0
     # With the detection worker: the scans it held when the map moved are mapped first.
-    run_replay(survey.recording, tmp_path / "two", ReplayOptions(two_threads()))
-    same_files(tmp_path / "out", tmp_path / "two")
+    for detect_in in ("thread", "process"):
+        run_replay(survey.recording, tmp_path / detect_in, ReplayOptions(two_cores(detect_in)))
+        same_files(tmp_path / "out", tmp_path / detect_in)
 
 
 def test_old_trees_seen_from_both_lanes_are_one_tree_each(tmp_path):
