@@ -19,6 +19,8 @@ where the service sheds scans (`service.max_backlog_s`, docs/service.md). Measur
   a service that does not report `lidar_packets` is charged its drops plus the kernel's;
 - CPU: utime + stime of the service (/proc/<pid>/stat) over the window, % of one core;
   and per thread (/proc/<pid>/task/*/stat; the receive threads are named rx-<sensor>);
+  a detection process the service started (`--detect-in process`) counted with it, its
+  memory too;
 - RSS: VmRSS every second; the peak, and the median of the first and last thirds (flat
   means last/first near 1);
 - latency from a scan's last packet to its trees committed: `traits.sqlite` is polled
@@ -38,7 +40,7 @@ latency_ms_p50=A latency_ms_p99=B rss_growth=G cpu_vs_replay=R` (no line breaks)
 core: what one core of a slower computer must keep up with.
 
     .venv/bin/python bench/service.py [--seconds 60] [--record] [--recording REC.mcap]
-        [--busy N] [--workers 1|2]
+        [--busy N] [--workers 1|2] [--detect-in thread|process]
 """
 
 from __future__ import annotations
@@ -125,32 +127,57 @@ def free_udp_port() -> int:
         return sock.getsockname()[1]
 
 
+def family(pid: int) -> list[int]:
+    """The process and its descendants (/proc/<pid>/task/*/children): a detection worker
+    in a second process (`[pipeline] detect_in = "process"`) is the service's work."""
+    out, todo = [], [pid]
+    while todo:
+        parent = todo.pop()
+        out.append(parent)
+        for children in Path(f"/proc/{parent}/task").glob("*/children"):
+            with contextlib.suppress(OSError, ValueError):
+                todo += [int(child) for child in children.read_text().split()]
+    return out
+
+
 def cpu_seconds(pid: int) -> float:
-    """utime + stime of a process, all its threads, in seconds."""
-    stat = Path(f"/proc/{pid}/stat").read_text()
-    fields = stat[stat.rindex(")") + 2 :].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # fields 14 and 15 of proc(5)
+    """utime + stime of a process and its descendants, all their threads, in seconds."""
+    total = 0.0
+    for member in family(pid):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            stat = Path(f"/proc/{member}/stat").read_text()
+            fields = stat[stat.rindex(")") + 2 :].split()
+            total += (int(fields[11]) + int(fields[12])) / CLK_TCK  # fields 14, 15: proc(5)
+    return total
 
 
 def thread_cpu_seconds(pid: int) -> dict[str, float]:
-    """utime + stime per thread of a process, keyed by `tid name` (the name is the OS
-    thread name, /proc/<pid>/task/<tid>/comm: the service names its receive threads)."""
+    """utime + stime per thread of a process and its descendants, keyed by `tid name`
+    (the name is the OS thread name, /proc/<pid>/task/<tid>/comm: the service names its
+    receive threads)."""
     out = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        with contextlib.suppress(OSError, ValueError, IndexError):
-            stat = (task / "stat").read_text()
-            name = stat[stat.index("(") + 1 : stat.rindex(")")]
-            fields = stat[stat.rindex(")") + 2 :].split()
-            out[f"{task.name} {name}"] = (int(fields[11]) + int(fields[12])) / CLK_TCK
+    for member in family(pid):
+        with contextlib.suppress(OSError):
+            tasks = list(Path(f"/proc/{member}/task").iterdir())
+        for task in tasks:
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                stat = (task / "stat").read_text()
+                name = stat[stat.index("(") + 1 : stat.rindex(")")]
+                fields = stat[stat.rindex(")") + 2 :].split()
+                out[f"{task.name} {name}"] = (int(fields[11]) + int(fields[12])) / CLK_TCK
     return out
 
 
 def rss_mb(pid: int) -> float | None:
-    with contextlib.suppress(OSError):
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return None
+    """VmRSS of a process and its descendants, MB (None once it is gone)."""
+    total, found = 0.0, False
+    for member in family(pid):
+        with contextlib.suppress(OSError):
+            for line in Path(f"/proc/{member}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) / 1024
+                    found = True
+    return total if found else None
 
 
 def udp_drops(port: int) -> int | None:
@@ -297,7 +324,13 @@ def busy_loops(count: int, cpu: int) -> list[subprocess.Popen]:
 
 
 def live_run(
-    recording: Path, seconds: float, record: bool, work: Path, busy: int = 0, workers: int = 0
+    recording: Path,
+    seconds: float,
+    record: bool,
+    work: Path,
+    busy: int = 0,
+    workers: int = 0,
+    detect_in: str = "",
 ) -> LiveRun:
     work.mkdir(parents=True)
     video = write_camera_video(recording, work / "camera.avi")
@@ -317,6 +350,7 @@ def live_run(
                 "calibration": str(calibration_path),
                 "field_map": str(field_map) if field_map.exists() else "",
                 **({"workers": workers} if workers else {}),
+                **({"detect_in": detect_in} if detect_in else {}),
             },
             "lidar": {
                 "bind": "127.0.0.1",
@@ -554,6 +588,14 @@ def main() -> None:
         default=0,
         help="the service's [pipeline] workers (1 or 2; default: the config's default)",
     )
+    parser.add_argument(
+        "--detect-in",
+        choices=("thread", "process"),
+        default="",
+        help="where the service's detection worker runs ([pipeline] detect_in; default: "
+        "the config's, a thread in the service); a process's CPU and memory are counted "
+        "with the service's",
+    )
     args = parser.parse_args()
     recording = args.recording or survey_for(args.seconds)
     duration = span_s(recording)
@@ -566,12 +608,26 @@ def main() -> None:
         runs = [
             (
                 "live",
-                live_run(recording, args.seconds, False, work / "live", args.busy, args.workers),
+                live_run(
+                    recording,
+                    args.seconds,
+                    False,
+                    work / "live",
+                    args.busy,
+                    args.workers,
+                    args.detect_in,
+                ),
             )
         ]
         if args.record:
             record_run = live_run(
-                recording, args.seconds, True, work / "record", args.busy, args.workers
+                recording,
+                args.seconds,
+                True,
+                work / "record",
+                args.busy,
+                args.workers,
+                args.detect_in,
             )
             runs.append(("live --record", record_run))
         replay_cpu, replay_wall, scans = replay_cost(recording, work)
