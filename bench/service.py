@@ -157,6 +157,7 @@ def thread_cpu_seconds(pid: int) -> dict[str, float]:
     receive threads)."""
     out = {}
     for member in family(pid):
+        tasks = []
         with contextlib.suppress(OSError):
             tasks = list(Path(f"/proc/{member}/task").iterdir())
         for task in tasks:

@@ -13,6 +13,7 @@ so the mapper sees them as the sequential path would and the outputs are the sam
 
 from __future__ import annotations
 
+import signal
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
@@ -77,6 +78,11 @@ def _start_detector(config, calibration, timing: bool) -> None:
     global _detector
     from treetraits.pipeline.mapper import TreeMapper
 
+    # The caller ends it (`close`, or its own exit closing the pipe): a SIGTERM to the
+    # service's whole cgroup (`systemctl stop`) or a Ctrl-C to the terminal's process
+    # group must not kill it before the caller has mapped the scans it holds.
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _detector = TreeMapper(config, calibration, timing=timing)
 
 

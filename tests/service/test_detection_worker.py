@@ -51,3 +51,24 @@ def test_a_detection_error_in_the_process_is_raised_in_the_caller():
             list(worker.done(wait=True))
     finally:
         worker.close()
+
+
+def test_the_process_outlives_a_sigterm_to_the_services_group():
+    """`systemctl stop` signals the service's whole cgroup: the detecting process ignores
+    it, so the service maps the scans it holds before it closes the worker."""
+    import os
+    import signal
+
+    worker = detection_process(TreeMapper())
+    try:
+        worker.submit(_tree_scan(4.0, 1), None, 0)
+        assert len(list(worker.done(wait=True))) == 1
+        (child,) = worker._pool._processes.values()
+        os.kill(child.pid, signal.SIGTERM)
+        child.join(1.0)
+        assert child.is_alive()
+        worker.submit(_tree_scan(6.0, 2), None, 1)
+        assert [context for _, context in worker.done(wait=True)] == [1]
+    finally:
+        worker.close()
+    assert not child.is_alive()
