@@ -140,14 +140,18 @@ def family(pid: int) -> list[int]:
     return out
 
 
+def stat_cpu_seconds(stat: str) -> float:
+    """utime + stime from a /proc stat line (fields 14 and 15 of proc(5)), in seconds."""
+    fields = stat[stat.rindex(")") + 2 :].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
 def cpu_seconds(pid: int) -> float:
     """utime + stime of a process and its descendants, all their threads, in seconds."""
     total = 0.0
     for member in family(pid):
         with contextlib.suppress(OSError, ValueError, IndexError):
-            stat = Path(f"/proc/{member}/stat").read_text()
-            fields = stat[stat.rindex(")") + 2 :].split()
-            total += (int(fields[11]) + int(fields[12])) / CLK_TCK  # fields 14, 15: proc(5)
+            total += stat_cpu_seconds(Path(f"/proc/{member}/stat").read_text())
     return total
 
 
@@ -164,8 +168,7 @@ def thread_cpu_seconds(pid: int) -> dict[str, float]:
             with contextlib.suppress(OSError, ValueError, IndexError):
                 stat = (task / "stat").read_text()
                 name = stat[stat.index("(") + 1 : stat.rindex(")")]
-                fields = stat[stat.rindex(")") + 2 :].split()
-                out[f"{task.name} {name}"] = (int(fields[11]) + int(fields[12])) / CLK_TCK
+                out[f"{task.name} {name}"] = stat_cpu_seconds(stat)
     return out
 
 
@@ -606,31 +609,21 @@ def main() -> None:
         )
     work = Path(tempfile.mkdtemp(prefix="treetraits-bench-service-"))
     try:
-        runs = [
-            (
-                "live",
-                live_run(
-                    recording,
-                    args.seconds,
-                    False,
-                    work / "live",
-                    args.busy,
-                    args.workers,
-                    args.detect_in,
-                ),
-            )
-        ]
-        if args.record:
-            record_run = live_run(
+
+        def run(record: bool, name: str) -> LiveRun:
+            return live_run(
                 recording,
                 args.seconds,
-                True,
-                work / "record",
+                record,
+                work / name,
                 args.busy,
                 args.workers,
                 args.detect_in,
             )
-            runs.append(("live --record", record_run))
+
+        runs = [("live", run(False, "live"))]
+        if args.record:
+            runs.append(("live --record", run(True, "record")))
         replay_cpu, replay_wall, scans = replay_cost(recording, work)
         per_s = replay_cpu / duration
         print(

@@ -98,7 +98,7 @@ class Cluster:
     # between its highest return and that ray. None: the crown went on above (or no beam
     # is above: the sensor's top ring hit it).
     beam_above: np.ndarray | None = None
-    # The sensor's top ring hit it (`BeamsAbove.top_cut`): its top was out of view because
+    # The sensor's top ring hit it (`BeamsAbove.top_view`): its top was out of view because
     # it reached above the top beam, not because something nearer hid it (`top_view`).
     top_cut: bool = False
     # (3,) base frame: the axis of the one trunk seen under its crown in this scan
@@ -446,13 +446,11 @@ def detect(
     beams = BeamsAbove(points)
     window = math.radians(config.cluster.top_window_deg)
 
-    def beam_above(members: np.ndarray) -> np.ndarray | None:
-        """The beam above the cluster's top, in `base`, when it passed over it all."""
-        beam = beams.beam_above(source[members], window, config.cluster.tolerance_m)
-        return None if beam is None else T_base_lidar[:3, :3] @ beam
-
-    def top_cut(members: np.ndarray) -> bool:
-        return beams.top_cut(source[members])
+    def top_view(members: np.ndarray) -> tuple[np.ndarray | None, bool]:
+        """The beam above the cluster's top, in `base`, when it passed over it all (else
+        None), and whether the sensor's top ring hit it (`BeamsAbove.top_view`)."""
+        beam, cut = beams.top_view(source[members], window, config.cluster.tolerance_m)
+        return (None if beam is None else T_base_lidar[:3, :3] @ beam), cut
 
     clusters = _features(
         clusters_kept,
@@ -465,8 +463,7 @@ def detect(
         ground,
         T_base_lidar[:3, 3],
         config.classify,
-        beam_above,
-        top_cut,
+        top_view,
         trunks,
         points[["azimuth", "intensity", "return_type"]],  # a view: nothing copied
         source,
@@ -721,8 +718,7 @@ def _features(
     ground,
     lidar_xyz,
     classify: ClassifyConfig,
-    beam_above: Callable[[np.ndarray], np.ndarray | None],
-    top_cut: Callable[[np.ndarray], bool],
+    top_view: Callable[[np.ndarray], tuple[np.ndarray | None, bool]],
     trunks: dict[int, np.ndarray],
     firing: np.ndarray,
     source: np.ndarray,
@@ -780,7 +776,7 @@ def _features(
             surface[k], ndvi=crown_ndvi, ndvi_share=crown_seen, ndvi_returns=seen_returns
         )
         evidence = weigh(cues, classify)
-        beam = beam_above(members)
+        beam, cut = top_view(members)
         clusters.append(
             Cluster(
                 centroid=centroid,
@@ -795,7 +791,7 @@ def _features(
                 cues=cues,
                 evidence=evidence,
                 beam_above=beam,
-                top_cut=beam is None and top_cut(members),  # asked only when not seen
+                top_cut=cut,
                 trunk=trunks.get(int(kept[k])),
             )
         )

@@ -193,12 +193,13 @@ class _Tree:
 
         # A ray below its highest return where the tree stands passed over a piece of the
         # crown, the rest of it hidden in that scan or cut off the cluster: it bounds nothing.
-        valid = rays_at(centre) >= self.top_z - _RAY_NOISE_M
+        at_centre = rays_at(centre)
+        valid = at_centre >= self.top_z - _RAY_NOISE_M
         if np.count_nonzero(valid) < 2:
             return False
         top_gap = 0.0  # a ray within the noise below the highest return: 0
-        for place in (centre, self.top_xy):
-            second_lowest = np.partition(rays_at(place)[valid], 1)[1]
+        for rays in (at_centre, rays_at(self.top_xy)):
+            second_lowest = np.partition(rays[valid], 1)[1]
             top_gap = max(top_gap, float(second_lowest) - self.top_z)
         foot_gap = max(0.0, self.top_z - height - float(np.percentile(self.grounds, 10)))
         return top_gap + foot_gap <= tolerance * height

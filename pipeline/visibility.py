@@ -66,11 +66,13 @@ class BeamsAbove:
         """Whether the beam above the cluster `members` (indices into the scan this was
         built on) passed over all of it: see the module's docstring. Two kernels, to the
         bit `top_seen_numpy`; the arctangent of the top stays NumPy's."""
-        x, y, z, bearing, span, rings = self._by_point
         members = kernel_layout(members, np.int64)
-        top, ring = _top_and_ring(z, rings, members)
-        if ring >= self.top_ring:
-            return False
+        top, ring = _top_and_ring(self._by_point[2], self._by_point[5], members)
+        return ring < self.top_ring and self._over_all(members, top, ring, window_rad, reach_m)
+
+    def _over_all(self, members, top: int, ring: int, window_rad: float, reach_m: float) -> bool:
+        """`top_seen` for a cluster whose top return `top` is on `ring`, below the top ring."""
+        x, y, _, bearing, span, _ = self._by_point
         centre = float(np.arctan2(y[top], x[top]))  # as before: the scalar arctangent
         start, end = self._starts[ring + 1], self._starts[ring + 2]
         return _passed_over(
@@ -78,32 +80,30 @@ class BeamsAbove:
             start, end,
         )  # fmt: skip
 
-    def top_cut(self, members: np.ndarray) -> bool:
-        """Whether the cluster `members` reaches the sensor's top beam: no beam is above
-        it, and it may go on above the top beam's reach (a crown too close for its top
-        to be in view). `top_seen` is then false whatever lies around it."""
-        _, ring = _top_and_ring(
-            self._by_point[2], self._by_point[5], kernel_layout(members, np.int64)
-        )
-        return bool(ring >= self.top_ring)
-
-    def beam_above(
+    def top_view(
         self, members: np.ndarray, window_rad: float, reach_m: float
-    ) -> np.ndarray | None:
-        """Where the beam above the cluster `members` pointed at its top's bearing (a unit
-        vector, the LiDAR's frame) when it passed over all of it (`top_seen`), else None.
-        The crown's top lies under that ray: with its highest return below, the two
-        bracket the top's height in this scan (`pipeline.mapper`, `height_top_seen`)."""
-        if not self.top_seen(members, window_rad, reach_m):
-            return None
+    ) -> tuple[np.ndarray | None, bool]:
+        """The cluster `members`' top in this scan: where the beam above it pointed at its
+        top's bearing (a unit vector, the LiDAR's frame) when it passed over all of it
+        (`top_seen`), else None; and whether the sensor's top ring hit it (cut: no beam is
+        above it, and it may go on above the top beam's reach, a crown too close for its
+        top to be in view). The crown's top lies under the beam above: with its highest
+        return below, the two bracket the top's height in this scan (`pipeline.mapper`,
+        `height_top_seen`)."""
+        members = kernel_layout(members, np.int64)
         x, y, z, _, _, rings = self._by_point
-        top, ring = _top_and_ring(z, rings, kernel_layout(members, np.int64))
+        top, ring = _top_and_ring(z, rings, members)
+        if ring >= self.top_ring:
+            return None, True
+        if not self._over_all(members, top, ring, window_rad, reach_m):
+            return None, False
         elevation = self._elevation_above(int(ring))
         if elevation is None:
-            return None
+            return None, False
         bearing = math.atan2(y[top], x[top])
         flat = math.cos(elevation)
-        return np.array([flat * math.cos(bearing), flat * math.sin(bearing), math.sin(elevation)])
+        beam = np.array([flat * math.cos(bearing), flat * math.sin(bearing), math.sin(elevation)])
+        return beam, False
 
     def _elevation_above(self, ring: int) -> float | None:
         """The elevation (rad, the LiDAR's frame) of the ring above `ring`. The beams are

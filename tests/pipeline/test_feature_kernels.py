@@ -42,21 +42,21 @@ def scan_points() -> np.ndarray:
 def detected_calls() -> tuple[list[tuple], list[tuple]]:
     """The arguments `detect` gives the roughness and the beam-above test on the scan."""
     rough_calls, top_calls = [], []
-    saved, original = detection.roughness_of_groups, BeamsAbove.top_seen
+    saved, original = detection.roughness_of_groups, BeamsAbove.top_view
 
     def rough(*args):
         rough_calls.append(args)
         return saved(*args)
 
-    def top_seen(self, members, window, reach):
+    def top_view(self, members, window, reach):
         top_calls.append((self, members, window, reach))
         return original(self, members, window, reach)
 
-    detection.roughness_of_groups, BeamsAbove.top_seen = rough, top_seen
+    detection.roughness_of_groups, BeamsAbove.top_view = rough, top_view
     try:
         detection.detect(scan_points(), None, DEFAULT_T_BASE_LIDAR, DetectionConfig())
     finally:
-        detection.roughness_of_groups, BeamsAbove.top_seen = saved, original
+        detection.roughness_of_groups, BeamsAbove.top_view = saved, original
     return rough_calls, top_calls
 
 

@@ -72,8 +72,8 @@ def test_no_beam_above_the_top_beam_and_the_seam_of_bearings():
 def test_a_cluster_on_the_top_ring_is_cut_others_are_not():
     scan = returns(*CLUSTER, FAR_OFF, (15, 60.0, 8.0), (13, 61.0, 8.0))
     beams = BeamsAbove(scan)
-    assert not beams.top_cut(np.array([0, 1]))  # ring 12: a beam above it
-    assert beams.top_cut(np.array([3, 4]))  # the top ring (15) hit it
+    assert not beams.top_view(np.array([0, 1]), WINDOW, 0.5)[1]  # ring 12: a beam above it
+    assert beams.top_view(np.array([3, 4]), WINDOW, 0.5)[1]  # the top ring (15) hit it
 
 
 def test_the_beam_above_points_where_the_next_ring_does():
@@ -82,11 +82,11 @@ def test_the_beam_above_points_where_the_next_ring_does():
     from ring 10 (5 deg) to ring 12 carried on. None when the top was not seen."""
     elsewhere = (13, -60.0, 10.0)
     for points in (returns(*CLUSTER, elsewhere, FAR_OFF), returns(*CLUSTER, FAR_OFF)):
-        beam = BeamsAbove(points).beam_above(np.arange(2), WINDOW, 0.5)
+        beam, _ = BeamsAbove(points).top_view(np.arange(2), WINDOW, 0.5)
         assert math.degrees(math.asin(beam[2])) == pytest.approx(11.0, abs=1e-4)
         assert math.degrees(math.atan2(beam[1], beam[0])) == pytest.approx(30.0, abs=1e-4)
     hidden = returns(*CLUSTER, (13, 30.2, 5.0), FAR_OFF)
-    assert BeamsAbove(hidden).beam_above(np.arange(2), WINDOW, 0.5) is None
+    assert BeamsAbove(hidden).top_view(np.arange(2), WINDOW, 0.5) == (None, False)
 
 
 @pytest.mark.parametrize(
