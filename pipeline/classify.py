@@ -60,6 +60,11 @@ class Shape:
     # not measured): a post or a person standing in a weed clump is as thin there as
     # anywhere, whatever the clump's width at its foot.
     crown_width_m: float = math.nan
+    # Its lowest return is on the sensor's lowest ring: what lies under it was out of the
+    # LiDAR's view (a LiDAR mounted high, looking down on a crown close by), so nothing
+    # says it floats. On a Jackal's 0.4 m mount that beam points down and hits nothing
+    # a metre above the ground.
+    base_cut: bool = False
 
     @property
     def aspect(self) -> float:
@@ -73,19 +78,23 @@ def shape_of(
     ground_z: float,
     ndvi: np.ndarray | None = None,
     rough: float | None = None,
+    rings_known: bool = True,
 ) -> Shape:
-    """`points` N x 3 with z up (the frame of `lidar_xy`, the LiDAR's x-y), their rings;
-    `ndvi` per point (NaN where unknown) or None; `rough`: their `roughness` when known
-    (`roughness_of_groups`)."""
+    """`points` N x 3 with z up (the frame of `lidar_xy`, the LiDAR's x-y), their rings
+    (0 the lowest beam; `rings_known` False for a cloud imported without them, every ring
+    0); `ndvi` per point (NaN where unknown) or None; `rough`: their `roughness` when
+    known (`roughness_of_groups`)."""
     if len(points) == 0:
         return Shape(0.0, 0.0, 0.0, math.nan, math.nan, 0.0)
     height = float(points[:, 2].max() - ground_z)
-    base = float(points[:, 2].min() - ground_z)
+    lowest = int(np.argmin(points[:, 2]))
+    base = float(points[lowest, 2] - ground_z)
     width = horizontal_extent(points[:, :2])
     mean_ndvi, share, _ = ndvi_seen(ndvi)
     if rough is None:
         rough = roughness(points, ring, lidar_xy)
-    return Shape(height, base, width, rough, mean_ndvi, share)
+    base_cut = rings_known and int(ring[lowest]) == 0
+    return Shape(height, base, width, rough, mean_ndvi, share, base_cut=base_cut)
 
 
 def ndvi_seen(ndvi: np.ndarray | None) -> tuple[float, float, int]:
@@ -320,7 +329,7 @@ def judge(shape: Shape, config: ClassifyConfig, evidence: Evidence | None = None
         return LOW
     if shape.height_m > config.max_height_m:
         return TALL
-    if shape.base_m > config.max_base_m:
+    if shape.base_m > config.max_base_m and not shape.base_cut:
         return FLOATING
     if shape.width_m < config.min_width_m or shape.crown_width_m < config.min_width_m:
         return THIN  # (a NaN crown width, nothing above the understorey, compares False)

@@ -113,7 +113,8 @@ class TerrainConfig:
     support_radius_m: float = 1.0
     # The ground is seeded within this distance of the robot, where the rings below the
     # horizon land five times (1.5-4.6 m on a Jackal): from the lowest extensive surface
-    # there (the footprint itself has no returns).
+    # there (the footprint itself has no returns). A LiDAR mounted higher lands its
+    # lowest ring farther out, and the disc reaches past it (`terrain.seed_radius`).
     seed_radius_m: float = 6.0
     # A cell's ground height: the mean of its returns within this height of its lowest
     # one (the lowest alone is ~2 sigma of the range noise low).

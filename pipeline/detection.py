@@ -36,7 +36,7 @@ from treetraits.pipeline.config import (
 )
 from treetraits.pipeline.mixed import mixed_returns
 from treetraits.pipeline.stems import StemSearch, stem_of_voxels
-from treetraits.pipeline.terrain import TerrainGrid, fit_terrain
+from treetraits.pipeline.terrain import TerrainGrid, fit_terrain, lowest_ring_reach
 from treetraits.pipeline.understorey import join_understorey
 from treetraits.pipeline.vegetation import Cues, Evidence, measure_groups, weigh
 from treetraits.pipeline.visibility import BeamsAbove
@@ -160,6 +160,18 @@ def to_base(points: np.ndarray, T_base_lidar: np.ndarray) -> np.ndarray:
         xyz += T_base_lidar[:3, 3]
         return xyz
     return xyz @ T_base_lidar[:3, :3].T + T_base_lidar[:3, 3]
+
+
+def lowest_ring_elevation(points: np.ndarray) -> float | None:
+    """The elevation (rad, in `lidar`) of the sensor's lowest beam: the median over the
+    returns of ring 0 (rings are numbered by elevation from the lowest). None without
+    rings (a cloud imported without them: every ring 0) or without such returns."""
+    ring = points["ring"]
+    lowest = ring == 0
+    if not lowest.any() or lowest.all():
+        return None
+    x, y, z = points["x"][lowest], points["y"][lowest], points["z"][lowest]
+    return float(np.median(np.arctan2(z, np.hypot(x, y))))
 
 
 def crop_mask(xyz: np.ndarray, config: CropConfig, lidar_xy: np.ndarray) -> np.ndarray:
@@ -374,7 +386,9 @@ def detect(
 
     # Height above the ground under each point, not z, tells ground from tree: the
     # terrain follows slopes, furrows and beds (`pipeline.terrain`).
-    ground = ground_model(xyz, config)
+    elevation = lowest_ring_elevation(points)
+    reach = None if elevation is None else lowest_ring_reach(elevation, T_base_lidar)
+    ground = ground_model(xyz, config, reach)
     height = ground.height(xyz)
     clock.lap("ground")
 
@@ -468,17 +482,21 @@ def detect(
         points[["azimuth", "intensity", "return_type"]],  # a view: nothing copied
         source,
         height >= config.cluster.bridge_min_height_m,
+        elevation is not None,
     )
     counts["clustered_voxels"] = sum(c.num_points for c in clusters)
     clock.lap("features")
     return Detection(clusters, ground, counts)
 
 
-def ground_model(xyz: np.ndarray, config: DetectionConfig) -> GroundModel:
-    """The configured ground of one scan's cropped points (`base`)."""
+def ground_model(
+    xyz: np.ndarray, config: DetectionConfig, lowest_ring_reach_m: float | None = None
+) -> GroundModel:
+    """The configured ground of one scan's cropped points (`base`); `lowest_ring_reach_m`
+    as `fit_terrain` takes it (where the lowest beam meets level ground)."""
     if config.ground.model == "plane":
         return fit_ground(xyz, config.ground)
-    return fit_terrain(xyz, config.terrain, config.crop.x_m, config.crop.y_m)
+    return fit_terrain(xyz, config.terrain, config.crop.x_m, config.crop.y_m, lowest_ring_reach_m)
 
 
 def split_at_trunks(
@@ -723,13 +741,16 @@ def _features(
     firing: np.ndarray,
     source: np.ndarray,
     crown_part: np.ndarray,
+    rings_known: bool = True,
 ) -> list[Cluster]:
     """Each kept cluster's shape, cues and verdict. `firing`: the scan's returns' sensor
     azimuth, intensity and return type (`vegetation.measure_groups`), `source` each
     kept return's index among them (only the clusters' are gathered). `crown_part`: the
     returns above the understorey, on which the cues are measured: weeds at a post's
     foot are vegetation, and a post standing in them is no crown (a tree's foliage is
-    its crown's, above where the understorey ends)."""
+    its crown's, above where the understorey ends). `rings_known`: the scan's rings
+    number its beams (`lowest_ring_elevation` found the lowest), so a cluster's base on
+    ring 0 is cut by the view (`Shape.base_cut`)."""
     lidar_xy = lidar_xyz[:2]
     point_label = labels[voxel_of]
     order = stable_order(point_label)
@@ -767,7 +788,7 @@ def _features(
         ground_z = float(ground_zs[k])
         points = all_points[ends[k] - sizes[k] : ends[k]]
         rings = all_rings[ends[k] - sizes[k] : ends[k]]
-        shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]))
+        shape = shape_of(points, rings, lidar_xy, ground_z, values, float(rough[k]), rings_known)
         mine = upper[ends[k] - sizes[k] : ends[k]]
         if mine.any():
             shape = replace(shape, crown_width_m=horizontal_extent(points[mine, :2]))

@@ -106,9 +106,12 @@ def fit_terrain(
     config: TerrainConfig,
     x_range: tuple[float, float],
     y_range: tuple[float, float],
+    lowest_ring_reach_m: float | None = None,
 ) -> TerrainGrid:
     """The terrain of one scan's points (N x 3, footprint at the origin, z up) over the
-    box x_range x y_range."""
+    box x_range x y_range. `lowest_ring_reach_m`: how far from the footprint the LiDAR's
+    lowest beam meets level ground (`lowest_ring_reach`), which widens the seed disc for
+    a LiDAR mounted high (`seed_radius`); None: `seed_radius_m` as configured."""
     c = config.cell_m
     x0, y0 = x_range[0], y_range[0]
     nx = max(1, math.ceil((x_range[1] - x0) / c))
@@ -122,7 +125,7 @@ def fit_terrain(
     # Seeds: near the robot, the lowest surface with some extent is the ground (the
     # footprint alone would trust the calibrated mount height; a wrong one, or a robot
     # standing in a furrow, would then seed the ground in mid-air).
-    seeds = _seeds(lowest, observed, distance, config)
+    seeds = _seeds(lowest, observed, distance <= seed_radius(config, lowest_ring_reach_m), config)
     ground = _grow(lowest, observed, np.where(seeds, lowest, np.nan), seeds, config)
     ground = _median3(ground)
     accepted = np.isfinite(ground)
@@ -130,11 +133,56 @@ def fit_terrain(
     return TerrainGrid(x0, y0, c, filled, accepted & observed, observed)
 
 
-def _seeds(lowest, observed, distance, config: TerrainConfig) -> np.ndarray:
-    """Observed cells within `seed_radius_m` whose lowest layer is within the step
-    tolerance of the low tenth of those cells' heights (robust to a few returns from
+# How far past the lowest beam's landing the seed disc reaches: the next beam up lands
+# there too (a VLP-16's -13 deg beam: 1.6 m further out at 2.6 m up, 1 m at 1.6 m up),
+# so the disc holds two rings' arcs of ground.
+SEED_PAST_LOWEST_RING_M = 2.0
+
+
+def seed_radius(config: TerrainConfig, lowest_ring_reach_m: float | None) -> float:
+    """The radius of the disc the ground is seeded in: `seed_radius_m` (sized for a
+    Jackal, whose rings below the horizon land at 1.5-4.6 m), widened for a LiDAR
+    mounted higher, whose lowest ring lands farther out: at 1.7 m up a VLP-16's -15 deg
+    beam meets level ground 6.3 m away and the disc would hold no ground at all, only
+    crowns' skirts, and the ground would be seeded on them, in mid-air."""
+    if lowest_ring_reach_m is None:
+        return config.seed_radius_m
+    return max(config.seed_radius_m, lowest_ring_reach_m + SEED_PAST_LOWEST_RING_M)
+
+
+def lowest_ring_reach(
+    lowest_elevation_rad: float, T_base_lidar: np.ndarray, azimuths: int = 72
+) -> float | None:
+    """How far from the footprint (horizontally, `base`) a beam at `lowest_elevation_rad`
+    in the LiDAR's frame meets the level ground z = 0: the median over `azimuths`
+    bearings around the sensor, so that a disc this wide holds at least half of that
+    ring's arc (a tilted mount's lowest ring is no circle: pitched down, it lands near
+    ahead and far behind; tilted up, ahead it may never come down, counted as infinitely
+    far). None where it comes down at fewer than half the bearings, or the LiDAR is not
+    above the ground."""
+    T = np.asarray(T_base_lidar, dtype=float)
+    height = T[2, 3]
+    if not height > 0:
+        return None
+    a = np.linspace(0.0, 2 * np.pi, azimuths, endpoint=False)
+    c = math.cos(lowest_elevation_rad)
+    rise = np.full(azimuths, math.sin(lowest_elevation_rad))
+    down = T[:3, :3] @ np.stack([c * np.cos(a), c * np.sin(a), rise])
+    falling = down[2] < -1e-6
+    reach = np.full(azimuths, np.inf)
+    along = height / -down[2, falling]
+    reach[falling] = np.hypot(
+        T[0, 3] + along * down[0, falling], T[1, 3] + along * down[1, falling]
+    )
+    middle = float(np.median(reach))
+    return middle if math.isfinite(middle) else None
+
+
+def _seeds(lowest, observed, near, config: TerrainConfig) -> np.ndarray:
+    """Observed cells in the seed disc (`near`, bool) whose lowest layer is within the
+    step tolerance of the low tenth of those cells' heights (robust to a few returns from
     below the ground: multipath off a puddle). None near the robot: no seed."""
-    near = observed & (distance <= config.seed_radius_m)
+    near = observed & near
     if near.sum() < config.min_support_cells:
         return np.zeros_like(observed)
     floor = float(np.percentile(lowest[near], 10))

@@ -49,6 +49,13 @@ TREES = (
 )
 
 
+def high_mount(height_m: float) -> np.ndarray:
+    """The default mount raised to `height_m` above the footprint (a tractor's)."""
+    mount = DEFAULT_T_BASE_LIDAR.copy()
+    mount[2, 3] = height_m
+    return mount
+
+
 def rotation(roll: float, pitch: float) -> np.ndarray:
     cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
     rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
@@ -56,15 +63,18 @@ def rotation(roll: float, pitch: float) -> np.ndarray:
     return ry @ rx
 
 
-def one_scan(ground, base_from_world_tilt: np.ndarray | None = None):
+def one_scan(
+    ground, base_from_world_tilt: np.ndarray | None = None, mount_height_m: float | None = None
+):
     """One VLP-16 scan of the scene from a robot at the origin (yaw 0). With a tilt, the
-    robot stands pitched and rolled: the LiDAR is rotated with it about the footprint."""
+    robot stands pitched and rolled: the LiDAR is rotated with it about the footprint.
+    `mount_height_m`: the LiDAR this high above the footprint (default: the Jackal's)."""
     rng = np.random.default_rng(11)
     scene = Scene()
     scene.add(*height_field(ground), label=0)
     for i, spec in enumerate(TREES):
         scene.add(*tree_mesh(spec, ground, rng), label=i + 1)
-    mount = DEFAULT_T_BASE_LIDAR.copy()
+    mount = high_mount(mount_height_m) if mount_height_m else DEFAULT_T_BASE_LIDAR.copy()
     if base_from_world_tilt is not None:
         mount[:3, :3] = base_from_world_tilt @ mount[:3, :3]
         mount[:3, 3] = base_from_world_tilt @ mount[:3, 3]

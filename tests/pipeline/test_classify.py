@@ -29,6 +29,7 @@ from treetraits.pipeline.classify import (
     judge,
     roughness,
     roughness_of_groups,
+    shape_of,
 )
 from treetraits.pipeline.config import ClassifyConfig, ClusterConfig, DetectionConfig
 from treetraits.pipeline.detection import detect
@@ -102,6 +103,9 @@ WALL = Cues(texture_m=0.008, texture_triples=200, planar_share=0.9, planar_patch
         ({}, CROWN, TREE),
         ({"height_m": 0.5}, CROWN, LOW),  # cover crop
         ({"base_m": 2.6}, CROWN, FLOATING),  # a ceiling, a crown fragment
+        # A crown seen from a LiDAR mounted high, its base on the lowest beam: what is
+        # under it was out of view, so nothing says it floats.
+        ({"base_m": 1.5, "base_cut": True}, CROWN, TREE),
         ({"width_m": 0.3, "height_m": 1.8}, CROWN, THIN),  # a post, a person side on
         ({"width_m": 0.65, "height_m": 1.75}, CROWN, SLENDER),  # a person facing the robot
         ({"width_m": 12.0}, WALL, WIDE),  # a building
@@ -124,6 +128,17 @@ def test_each_rule(values, cues, verdict):
 def test_the_shape_rules_alone_without_evidence():
     assert judge(shape(), CONFIG) == TREE
     assert judge(shape(height_m=0.5), CONFIG) == LOW
+
+
+def test_a_base_on_the_lowest_ring_is_cut_by_the_view():
+    """The lowest return on ring 0 (the sensor's lowest beam) cuts the base; on another
+    ring it does not; nor on a cloud without rings (every return on ring 0)."""
+    points = np.array([[4.0, 0.0, 1.2], [4.0, 0.1, 2.0], [4.1, 0.0, 2.6]])
+    lidar = np.zeros(2)
+    assert shape_of(points, np.array([0, 1, 2]), lidar, 0.0, rough=0.1).base_cut
+    assert not shape_of(points, np.array([1, 0, 2]), lidar, 0.0, rough=0.1).base_cut
+    unnumbered = shape_of(points, np.zeros(3, dtype=int), lidar, 0.0, rough=0.1, rings_known=False)
+    assert not unnumbered.base_cut
 
 
 def test_roughness_of_a_smooth_wall_and_of_foliage():

@@ -9,11 +9,20 @@ import math
 import numpy as np
 import pytest
 
-from tests.helpers.terrain import TREES, RollingGround, one_scan, rotation
+from tests.helpers.terrain import TREES, RollingGround, high_mount, one_scan, rotation
 from treetraits.drivers.calibration import DEFAULT_T_BASE_LIDAR
+from treetraits.pipeline.classify import FLOATING
 from treetraits.pipeline.config import DetectionConfig, TerrainConfig
 from treetraits.pipeline.detection import crop_mask, detect, to_base
-from treetraits.pipeline.terrain import TerrainGrid, _gaussian, _gaussian_weights, fit_terrain
+from treetraits.pipeline.terrain import (
+    SEED_PAST_LOWEST_RING_M,
+    TerrainGrid,
+    _gaussian,
+    _gaussian_weights,
+    fit_terrain,
+    lowest_ring_reach,
+    seed_radius,
+)
 
 
 def ground_truth_in_base(ground, tilt: np.ndarray, x: float, y: float) -> float:
@@ -88,6 +97,56 @@ def test_each_tree_is_one_cluster_and_no_ground_clusters(pitched):
         ]
 
     assert max(ground_errors(tall)) < 0.3
+
+
+@pytest.mark.parametrize("mount_m", [1.7, 2.6], ids=["bonnet-1.7m", "cab-2.6m"])
+def test_a_lidar_mounted_high_seeds_the_ground_on_the_ground(mount_m):
+    """A LiDAR on a tractor, 1.7 m up (its bonnet) or 2.6 m (its cab), over level,
+    furrowed ground: its lowest beam meets the ground 6.3 or 9.7 m out, beyond the
+    Jackal's 6 m seed disc, where only the near crowns' skirts were (before, the ground
+    was seeded on them, 1 m up). The ground is seeded on the ground: under each trunk the
+    terrain is the ground, and each tree is one cluster on it, the near crowns, whose
+    bases the lowest beam cuts (nothing under them in view), not judged floating.
+    (Level: inside the disc no beam reaches, the ground is filled from around it, which
+    on the 15 % slope puts the foot of a tree 6 m downhill 1.1-1.7 m high: docs.)"""
+    ground = RollingGround(along=0.0, across=0.0)
+    mount = high_mount(mount_m)
+    scan = one_scan(ground, mount_height_m=mount_m)
+    detection = detect(scan.points, None, mount, DetectionConfig())
+    tall = [c for c in detection.clusters if c.points[:, 2].max() - c.ground_z > 0.5]
+    for spec in TREES:
+        truth = float(ground.height(spec.x, spec.y))
+        assert detection.ground.z_at(spec.x, spec.y) == pytest.approx(truth, abs=0.3)
+        near = [c for c in tall if math.hypot(c.centroid[0] - spec.x, c.centroid[1] - spec.y) < 2]
+        assert len(near) == 1, spec.tree_id
+        assert near[0].verdict != FLOATING, spec.tree_id
+
+
+def test_the_seed_disc_reaches_past_where_the_lowest_beam_meets_the_ground():
+    """The VLP-16's -15 deg beam from 0.44 m (the Jackal) lands 1.7 m out: the configured
+    6 m disc stands. From 2.6 m it lands 9.7 m out, and the disc reaches 2 m past it. A
+    mount pitched down 10 deg lands nearest ahead (5.6 m) and farthest behind (30 m):
+    the median over the bearings, about where it lands to the sides, counts. One tilted
+    up 20 deg never brings that beam down ahead; behind and to the sides it does."""
+    low = math.radians(-15.0)
+    config = TerrainConfig()
+    jackal = lowest_ring_reach(low, DEFAULT_T_BASE_LIDAR)
+    height = DEFAULT_T_BASE_LIDAR[2, 3]
+    # (the LiDAR 4 cm ahead of the footprint: 4 cm nearer ahead, farther behind)
+    assert jackal == pytest.approx(height / math.tan(math.radians(15)), abs=0.05)
+    assert seed_radius(config, jackal) == config.seed_radius_m
+    cab = lowest_ring_reach(low, high_mount(2.6))
+    cab_disc = 2.6 / math.tan(math.radians(15)) + SEED_PAST_LOWEST_RING_M
+    assert seed_radius(config, cab) == pytest.approx(cab_disc, abs=0.05)
+    pitched = high_mount(2.6)
+    pitched[:3, :3] = rotation(0.0, math.radians(10))  # nose down: the beams ahead fall
+    sideways = 2.6 / math.tan(math.radians(15))
+    assert lowest_ring_reach(low, pitched) == pytest.approx(sideways, rel=0.15)
+    up = high_mount(2.6)
+    up[:3, :3] = rotation(0.0, math.radians(-20))
+    assert lowest_ring_reach(low, up) == pytest.approx(sideways, rel=0.15)
+    assert lowest_ring_reach(low, high_mount(0.0)) is None
+    assert seed_radius(config, None) == config.seed_radius_m
 
 
 def test_flat_ground_without_returns_near_the_robot_is_the_footprint():
