@@ -84,6 +84,10 @@ class SurveySettings:
     # base_link), replacing the calibration's: written into the recording's calibration,
     # so replay removes the lever arm the receiver saw. None: the calibration's.
     antenna: tuple[float, float, float] | None = None
+    # The LiDAR's height above base_link (m), replacing the calibration's: a tractor's
+    # (1.5-3 m: its bonnet, its cab) instead of the Jackal's 0.38 m. Written into the
+    # recording's calibration, as the antenna. None: the calibration's.
+    lidar_height: float | None = None
     # The host's realtime clock minus UTC (s): a robot without NTP in the field. Every
     # message's log_time (and the camera's and wheels' host-clock stamps) carries it.
     host_clock_offset_s: float = 0.0
@@ -146,6 +150,14 @@ def with_antenna(calibration: Calibration, xyz: tuple[float, float, float]) -> C
     T_base_gnss = np.array(calibration.T_base_gnss, dtype=float)
     T_base_gnss[:3, 3] = xyz
     return replace(calibration, T_base_gnss=T_base_gnss)
+
+
+def with_lidar_height(calibration: Calibration, height_m: float) -> Calibration:
+    """The calibration with the LiDAR raised or lowered to `height_m` above base_link;
+    the camera, fixed to the LiDAR (`T_camera_lidar`), moves with it."""
+    T_base_lidar = np.array(calibration.T_base_lidar, dtype=float)
+    T_base_lidar[2, 3] = height_m
+    return replace(calibration, T_base_lidar=T_base_lidar)
 
 
 def make_ground(settings: SurveySettings) -> Ground:
@@ -285,6 +297,8 @@ def simulate_survey(
     calibration = calibration or load_calibration(DEFAULT_CALIBRATION)
     if s.antenna is not None:
         calibration = with_antenna(calibration, s.antenna)
+    if s.lidar_height is not None:
+        calibration = with_lidar_height(calibration, s.lidar_height)
     rng = np.random.default_rng(s.seed)
     poses = drive(waypoints(s.path, s.width, s.length, s.goal), s.drive)
     t0_ns = int(START_UTC.timestamp() * 1e9)

@@ -1,9 +1,11 @@
-"""Foliage in the evaluation: `eval --foliage` reaches every case, the field suite grows
-every model, the paper suite the original twin's, and the cache tells them apart."""
+"""Foliage and the mount in the evaluation: `eval --foliage` and `--lidar-height` reach
+every case, the field suite grows every model, the paper suite the original twin's, and
+the cache tells them apart."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import pytest
 
@@ -86,3 +88,22 @@ def test_eval_rejects_an_unknown_model(tmp_path, capsys):
     with pytest.raises(SystemExit):
         parser.parse_args(["eval", "--foliage", "hedge", "--out", str(tmp_path)])
     assert "hedge" in capsys.readouterr().err
+
+
+def test_eval_lidar_height_mounts_every_case_higher_and_the_cache_tells_it_apart(
+    tmp_path, monkeypatch
+):
+    """`eval --lidar-height`: every case simulated with the LiDAR that high, nothing else
+    changed, in recordings of their own; out of 0.2-5 m refused before any work."""
+    argv = ["--suite", "field", "--cases", "all", "--lidar-height", "1.7"]
+    cases = _cases_run_by(argv, tmp_path, monkeypatch)
+    originals = [c for c in CASES if c.suite == "field"]
+    assert [c.name for c in cases] == [c.name for c in originals]
+    for case, original in zip(cases, originals, strict=True):
+        assert case.settings(1).lidar_height == 1.7
+        assert dataclasses.replace(case.survey, lidar_height=None) == original.survey
+        assert cache_key(case.settings(1)) != cache_key(original.settings(1))
+    from treetraits.cli import main
+
+    assert main(["eval", "--out", str(tmp_path / "x"), "--lidar-height", "9"]) == 2
+    assert not (tmp_path / "x").exists()

@@ -253,6 +253,30 @@ def test_a_turned_block_with_the_antenna_off_centre_maps_in_place(tmp_path):
     assert all(t.observations <= report.summary["scans"] for t in report.trees)
 
 
+def test_a_lidar_on_a_tractors_cab_measures_the_heights_it_sees(tmp_path):
+    """The paper's straight drive (2x3 trees 5 m apart, broadleaf crowns) with the LiDAR
+    2.6 m up, on a tractor's cab (the camera with it): the ground under the near crowns
+    is the ground, not their skirts (docs/pipeline.md, "A LiDAR mounted high"). Every
+    tree is found once; every height called measured is within 5 % of its truth (from
+    the Jackal's mount none is measured on this drive), and a lower bound is not above
+    its truth. Before the seed disc followed the mount, the middle trees' heights came out
+    2.39-2.41 m for 2.66-2.75 m, one of them called measured."""
+    settings = SurveySettings(seed=1, lidar_height=2.6, trees=TreeSettings(foliage="broadleaf"))
+    survey = twin_survey(settings)
+    report = run_replay(survey.recording, tmp_path / "out", ReplayOptions())
+    truth = truth_rows(survey)
+    assert sorted(t.field_id for t in report.trees) == sorted(truth)
+    measured = [t for t in report.trees if t.height_top_seen]
+    # Measured: 4 of 6 called measured, within 0.8 %; the two lower bounds 3.6-3.7 % under.
+    assert len(measured) >= 3
+    for tree in report.trees:
+        true_height = float(truth[tree.field_id]["height_m"])
+        if tree.height_top_seen:
+            assert tree.height_m == pytest.approx(true_height, rel=0.05), tree.field_id
+        else:
+            assert tree.height_m <= true_height * 1.05, tree.field_id
+
+
 def test_a_real_capture_with_a_real_nmea_log_is_placed_by_the_logs_utc(tmp_path, capsys):
     """The VeloView VLP-16 capture (2014-11-04, an indoor scene) with the OxTS receiver's
     log (2014-02-19, 10 Hz GGA, HDT): by their UTC they do not meet, which replay says

@@ -32,6 +32,7 @@ from treetraits.sim.gnss import GnssSettings
 from treetraits.sim.lidar import LidarSettings
 from treetraits.sim.paths import drive, waypoints
 from treetraits.sim.run import (
+    DEFAULT_CALIBRATION,
     LATENCY_NS,
     START_UTC,
     SurveySettings,
@@ -186,6 +187,26 @@ def test_the_command_line_writes_a_survey(tmp_path, capsys):
     assert out.exists() and out.with_suffix(".truth.csv").exists()
     assert "wrote" in capsys.readouterr().out
     assert main(["sim", "--grid", "4", "--out", str(out)]) == 2
+
+
+def test_the_lidar_raised_in_the_recordings_calibration(tmp_path, capsys):
+    """`--lidar-height`: the recording's calibration carries the LiDAR that high above
+    base_link, the rest of the mount as the calibration has it; out of 0.2-5 m refused."""
+    out = tmp_path / "high.mcap"
+    argv = ["sim", "--goal", "1", "--lidar-height", "2.6", "--out", str(out)]
+    assert main(argv) == 0
+    with rec.read_recording(out, topics=[]) as recording:
+        written = recording.metadata.calibration
+    mount = np.asarray(written["T_base_lidar"]).reshape(4, 4)
+    default = load_calibration(DEFAULT_CALIBRATION)
+    assert mount[2, 3] == 2.6
+    assert np.array_equal(mount[:2], default.T_base_lidar[:2])
+    assert np.array_equal(mount[3], default.T_base_lidar[3])
+    camera = np.asarray(written["T_camera_lidar"]).reshape(4, 4)
+    assert np.array_equal(camera, default.T_camera_lidar)
+    capsys.readouterr()
+    assert main(["sim", "--lidar-height", "7", "--out", str(tmp_path / "x.mcap")]) == 2
+    assert "--lidar-height must be a finite number in [0.2, 5]" in capsys.readouterr().err
 
 
 def test_nmea_info_measures_the_receivers_latency_in_a_recording(survey):

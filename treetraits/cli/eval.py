@@ -72,6 +72,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         help=f"grow every case's crowns with this foliage model ({', '.join(MODELS)}; "
         "default: each case's own, scattered in the paper suite, mixed in the field suite)",
     )
+    ev.add_argument(
+        "--lidar-height",
+        type=float,
+        metavar="M",
+        help="simulate every case with the LiDAR this high above base_link, in metres "
+        "(0.2-5; default: the calibration's, a Jackal's 0.38 m): what a tractor's "
+        "bonnet (~1.7) or cab (~2.6) mount measures",
+    )
     ev.add_argument("--list", action="store_true", help="list the cases and exit")
     ev.set_defaults(run=run)
 
@@ -80,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from treetraits.extras import require_extra
 
     require_extra("eval", "treetraits eval")
+    from treetraits.cli.sim import LIDAR_HEIGHT_M, _within
     from treetraits.evaluation.cases import CASES, select_cases
     from treetraits.evaluation.report import write_report
     from treetraits.evaluation.run import parse_methods, run_evaluation
@@ -106,6 +115,9 @@ def run(args: argparse.Namespace) -> int:
     cases = select_cases(args.cases, suite=args.suite)
     if args.foliage is not None:
         cases = [case.with_foliage(args.foliage) for case in cases]
+    if args.lidar_height is not None:
+        _within("--lidar-height", args.lidar_height, *LIDAR_HEIGHT_M)
+        cases = [case.with_lidar_height(args.lidar_height) for case in cases]
     methods = parse_methods(args.methods)
     config = load_config(args.config)
     # The lock only: a rerun reuses the recordings cached in OUT/cases/ and rewrites the

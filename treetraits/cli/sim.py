@@ -119,6 +119,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         "calibration's)",
     )
     sim.add_argument(
+        "--lidar-height",
+        type=float,
+        metavar="M",
+        help="the LiDAR's height above base_link in metres, 0.2-5, written into the "
+        "recording's calibration (default: the calibration's; a Jackal's 0.38 m): a "
+        "tractor's bonnet (~1.7) or cab (~2.6) sees the crowns' tops",
+    )
+    sim.add_argument(
         "--lidar-gps",
         action="store_true",
         help="the receiver also feeds the VLP-16's GPS input: its ToH counts on UTC and it "
@@ -248,6 +256,8 @@ GRID_M = (0.5, 30.0)
 # Trees per row and rows in the block: the twin is meant for blocks of tens of trees; a
 # 10 000-tree block takes hours to simulate and is a typo.
 LAYOUT = (1, 50)
+# A LiDAR's height on the robot: from a small robot's deck to a mast over a tractor's cab.
+LIDAR_HEIGHT_M = (0.2, 5.0)
 # A survey lasts at most a day of recorded time (GNSS outages, convergence, clock offset).
 DAY_S = 86400.0
 
@@ -366,6 +376,8 @@ def run_sim(args: argparse.Namespace) -> int:
     _within("--host-clock-offset", args.host_clock_offset, -DAY_S, DAY_S)
     if args.gnss_converge is not None:
         _within("--gnss-converge", args.gnss_converge, 0, DAY_S)
+    if args.lidar_height is not None:
+        _within("--lidar-height", args.lidar_height, *LIDAR_HEIGHT_M)
     _foliage(args.foliage)  # a ConfigError before any work
     if args.wires and not args.posts:
         raise ConfigError("--wires hang between posts: add --posts")
@@ -380,6 +392,7 @@ def run_sim(args: argparse.Namespace) -> int:
         goal=args.goal,
         field_heading_deg=args.field_heading,
         antenna=_antenna(args.antenna) if args.antenna else None,
+        lidar_height=args.lidar_height,
         host_clock_offset_s=args.host_clock_offset,
         lidar=dataclasses.replace(LidarSettings(), gps_sync=args.lidar_gps),
         gnss=dataclasses.replace(

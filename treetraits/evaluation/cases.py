@@ -59,6 +59,11 @@ class Case:
         trees = dataclasses.replace(self.survey.trees, foliage=model, foliage_mix=())
         return dataclasses.replace(self, survey=dataclasses.replace(self.survey, trees=trees))
 
+    def with_lidar_height(self, height_m: float) -> Case:
+        """The case with the LiDAR `height_m` above base_link (`eval --lidar-height`)."""
+        survey = dataclasses.replace(self.survey, lidar_height=height_m)
+        return dataclasses.replace(self, survey=survey)
+
 
 def _rows(names, width_ours, width_rph, height_ours, height_rph) -> tuple[PaperRow, ...]:
     return tuple(
