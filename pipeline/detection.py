@@ -164,11 +164,11 @@ def to_base(points: np.ndarray, T_base_lidar: np.ndarray) -> np.ndarray:
 
 def lowest_ring_elevation(points: np.ndarray) -> float | None:
     """The elevation (rad, in `lidar`) of the sensor's lowest beam: the median over the
-    returns of ring 0 (rings are numbered by elevation from the lowest). None without
-    rings (a cloud imported without them: every ring 0) or without such returns."""
-    ring = points["ring"]
-    lowest = ring == 0
-    if not lowest.any() or lowest.all():
+    returns of ring 0 (rings are numbered by elevation from the lowest; the caller knows
+    the scan's rings are numbered). None when that beam returned nothing (two of the
+    indoor captures: the floor within the sensor's minimum range)."""
+    lowest = points["ring"] == 0
+    if not lowest.any():
         return None
     x, y, z = points["x"][lowest], points["y"][lowest], points["z"][lowest]
     return float(np.median(np.arctan2(z, np.hypot(x, y))))
@@ -386,7 +386,10 @@ def detect(
 
     # Height above the ground under each point, not z, tells ground from tree: the
     # terrain follows slopes, furrows and beds (`pipeline.terrain`).
-    elevation = lowest_ring_elevation(points)
+    # A cloud imported without rings has every return on ring 0: nothing is known of
+    # its beams, neither where the lowest meets the ground nor which return it made.
+    rings_known = bool(points["ring"].any())
+    elevation = lowest_ring_elevation(points) if rings_known else None
     reach = None if elevation is None else lowest_ring_reach(elevation, T_base_lidar)
     ground = ground_model(xyz, config, reach)
     height = ground.height(xyz)
@@ -482,7 +485,7 @@ def detect(
         points[["azimuth", "intensity", "return_type"]],  # a view: nothing copied
         source,
         height >= config.cluster.bridge_min_height_m,
-        elevation is not None,
+        rings_known,
     )
     counts["clustered_voxels"] = sum(c.num_points for c in clusters)
     clock.lap("features")
@@ -741,7 +744,7 @@ def _features(
     firing: np.ndarray,
     source: np.ndarray,
     crown_part: np.ndarray,
-    rings_known: bool = True,
+    rings_known: bool,
 ) -> list[Cluster]:
     """Each kept cluster's shape, cues and verdict. `firing`: the scan's returns' sensor
     azimuth, intensity and return type (`vegetation.measure_groups`), `source` each
@@ -749,8 +752,8 @@ def _features(
     returns above the understorey, on which the cues are measured: weeds at a post's
     foot are vegetation, and a post standing in them is no crown (a tree's foliage is
     its crown's, above where the understorey ends). `rings_known`: the scan's rings
-    number its beams (`lowest_ring_elevation` found the lowest), so a cluster's base on
-    ring 0 is cut by the view (`Shape.base_cut`)."""
+    number its beams, so a cluster's base on ring 0 is cut by the view
+    (`Shape.base_cut`)."""
     lidar_xy = lidar_xyz[:2]
     point_label = labels[voxel_of]
     order = stable_order(point_label)
